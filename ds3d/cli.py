@@ -1,0 +1,38 @@
+"""The `ds3d` command line. Each part of the library registers its own subcommands:
+a module listed in COMMAND_MODULES has `register(commands, evals, benches)`, where the three
+arguments are argparse sub-parser collections for `ds3d <cmd>`, `ds3d eval <what>` and
+`ds3d bench <what>`; every parser it adds sets `func=callable(args) -> int | None`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMAND_MODULES: tuple[str, ...] = (
+    "ds3d.mocap.commands",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ds3d", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    evals = commands.add_parser("eval", help="evaluate on a dataset protocol").add_subparsers(
+        dest="what", required=True
+    )
+    benches = commands.add_parser("bench", help="measure speed").add_subparsers(
+        dest="what", required=True
+    )
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(commands, evals, benches)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""ds3d.evaluation"""
