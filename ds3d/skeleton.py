@@ -41,7 +41,9 @@ JOINT_SETS: dict[str, tuple[int, ...]] = {
     # all 14 joints
     "all": tuple(range(NUM_JOINTS)),
     # upper body, 10: wrists, elbows, shoulders, hips, neck, head
-    "up": (R_HIP, L_HIP, R_WRIST, R_ELBOW, R_SHOULDER, L_SHOULDER, L_ELBOW, L_WRIST, NECK, HEAD_TOP),
+    "up": (
+        R_HIP, L_HIP, R_WRIST, R_ELBOW, R_SHOULDER, L_SHOULDER, L_ELBOW, L_WRIST, NECK, HEAD_TOP,
+    ),
     # lower body, 6: hips, knees, ankles
     "lw": (R_ANKLE, R_KNEE, R_HIP, L_HIP, L_KNEE, L_ANKLE),
     # the person's left side, 8: left leg and arm, neck, head
@@ -65,12 +67,14 @@ def joint_set_mask(dtype=np.float32) -> np.ndarray:
 # 14 R shoulder, 15 R elbow, 16 R wrist. Neck = thorax, head top = head.
 H36M17_TO_LSP: tuple[int, ...] = (3, 2, 1, 4, 5, 6, 16, 15, 14, 11, 12, 13, 8, 10)
 
-# CMU BVH (cgspeed conversion, 43 joints, root "hip") joint names for the 14 LSP joints. The
-# head top is not a BVH joint: it is the end site of "head" (see ds3d.data.bvh).
+# CMU BVH (cgspeed conversion, 43 joints + 14 end sites, root "hip") joint names for the 14
+# LSP joints. The head top is not a BVH joint ("head" sits at the skull base and has only the
+# eyes as children): the last entry names the joint whose frame places it, see
+# ds3d.data.cmu.head_top_offset.
 CMU_BVH_TO_LSP: tuple[str, ...] = (
     "rFoot", "rShin", "rThigh", "lThigh", "lShin", "lFoot",
     "rHand", "rForeArm", "rShldr", "lShldr", "lForeArm", "lHand",
-    "neck", "head/End",
+    "neck", "head",
 )  # fmt: skip
 
 

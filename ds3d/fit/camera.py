@@ -1,0 +1,101 @@
+"""The projection M of the paper: a rotation and a translation, with known intrinsics
+(perspective) or without (weak perspective).
+
+Both models have six parameters per problem, all of order one so that L-BFGS sees a well-scaled
+problem: params = (r (3): axis-angle rotation, a, b, w).
+- Perspective, intrinsics K given: X_cam = R X + exp(w) * DEPTH_UNIT * (a, b, 1), so (a, b) is the
+  root's normalised image position and exp(w) * DEPTH_UNIT its depth in mm; uv = K X_cam / z.
+- Weak perspective, no intrinsics: uv = centre + spread * (exp(w) * (R X)_xy / DEPTH_UNIT + (a, b)),
+  where `centre` (px) and `spread` (px) are fixed per problem from the 2D pose being fitted. This
+  is an orthographic camera with unknown scale: what a person far from the camera looks like.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+DEPTH_UNIT = 1000.0  # mm
+
+
+def rotation_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula. rotvec: (..., 3) radians -> (..., 3, 3); smooth at zero."""
+    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    theta = theta2.clamp_min(1e-12).sqrt()
+    small = theta2 < 1e-8
+    # sin(t)/t and (1-cos t)/t^2 with their Taylor series near zero
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-12))
+    x, y, z = rotvec.unbind(-1)
+    zero = torch.zeros_like(x)
+    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape, 3)
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
+    return eye + a * skew + b * (skew @ skew)
+
+
+@dataclass
+class CameraFrame:
+    """What stays fixed while M is fitted, per problem (leading dims ...).
+
+    intrinsics: (..., 3, 3) K, or None for weak perspective; centre (..., 2) and spread (...)
+    in px define the weak-perspective image frame (unused with intrinsics).
+    """
+
+    intrinsics: torch.Tensor | None
+    centre: torch.Tensor
+    spread: torch.Tensor
+
+    def index(self, selector) -> CameraFrame:
+        k = None if self.intrinsics is None else self.intrinsics[selector]
+        return CameraFrame(k, self.centre[selector], self.spread[selector])
+
+
+def project(points: torch.Tensor, params: torch.Tensor, frame: CameraFrame) -> torch.Tensor:
+    """points: (..., N, J, 3) mm; params: (..., 6); frame with leading dims (...).
+    Returns (..., N, J, 2) px."""
+    rot = rotation_matrix(params[..., :3])[..., None, :, :]  # (..., 1, 3, 3)
+    a, b, w = params[..., 3:4], params[..., 4:5], params[..., 5:6]
+    rotated = points @ rot.transpose(-1, -2)  # (..., N, J, 3)
+    if frame.intrinsics is None:
+        xy = torch.exp(w)[..., None, None] * rotated[..., :2] / DEPTH_UNIT
+        xy = xy + torch.cat([a, b], -1)[..., None, None, :]
+        return frame.centre[..., None, None, :] + frame.spread[..., None, None, None] * xy
+    shift = torch.exp(w) * DEPTH_UNIT * torch.cat([a, b, torch.ones_like(a)], -1)
+    cam = rotated + shift[..., None, None, :]
+    k = frame.intrinsics[..., None, :, :]  # (..., 1, 3, 3)
+    z = cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
+    focal = torch.stack([k[..., 0, 0], k[..., 1, 1]], -1)[..., None, :]
+    principal = torch.stack([k[..., 0, 2], k[..., 1, 2]], -1)[..., None, :]
+    return focal * cam[..., :2] / z + principal
+
+
+def initial_params(
+    candidates: torch.Tensor, joints_2d: torch.Tensor, mask: torch.Tensor, frame: CameraFrame
+) -> torch.Tensor:
+    """Start M at the virtual camera of the candidates (identity rotation: they are already
+    camera-oriented) with the scale and position that best match the 2D pose.
+
+    candidates: (..., N, 14, 3) mm; joints_2d: (..., 14, 2) px; mask: (..., 14) float, the joints
+    used. Returns params (..., 6).
+    """
+    mean_pose = candidates.mean(-3)  # (..., 14, 3)
+    m = mask[..., None]
+    count = m.sum(-2).clamp_min(1)
+    c2 = (joints_2d * m).sum(-2) / count  # (..., 2) px
+    c3 = (mean_pose * m).sum(-2) / count  # (..., 3) mm
+    spread_2d = (((joints_2d - c2[..., None, :]) ** 2 * m).sum((-1, -2)) / count[..., 0]).sqrt()
+    spread_3d = (((mean_pose[..., :2] - c3[..., None, :2]) ** 2 * m).sum((-1, -2)) / count[..., 0])
+    spread_3d = spread_3d.sqrt().clamp_min(1.0)
+    zeros = torch.zeros_like(c2[..., :1])
+    if frame.intrinsics is None:
+        scale = spread_2d / frame.spread * DEPTH_UNIT / spread_3d  # exp(w)
+        ab = (c2 - frame.centre) / frame.spread[..., None]
+        ab = ab - scale[..., None] * c3[..., :2] / DEPTH_UNIT
+        return torch.cat([zeros, zeros, zeros, ab, scale.clamp_min(1e-6).log()[..., None]], -1)
+    k = frame.intrinsics
+    focal = torch.stack([k[..., 0, 0], k[..., 1, 1]], -1)
+    principal = torch.stack([k[..., 0, 2], k[..., 1, 2]], -1)
+    depth = focal.mean(-1) * spread_3d / spread_2d.clamp_min(1e-3)  # mm
+    ab = (c2 - principal) / focal - c3[..., :2] / depth[..., None]
+    return torch.cat([zeros, zeros, zeros, ab, (depth / DEPTH_UNIT).log()[..., None]], -1)

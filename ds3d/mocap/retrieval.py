@@ -1,0 +1,112 @@
+"""Nearest-neighbour retrieval of 3D poses from a 2D query: one faiss index per joint set.
+
+Each index holds, for every database entry (pose x virtual view), the normalised 2D pose of the
+set's joints; a query is normalised the same way, so retrieval ignores the camera and the scale.
+Faiss ranks by squared L2 over the set's joints (the paper uses the mean joint distance: the same
+neighbours up to ties, and faiss's exact and IVF indices support it).
+
+Indices are rebuilt from the pose database (a few MB) rather than shipped (hundreds of MB), and
+cached on disk under $DS3D_CACHE_DIR (default ~/.cache/ds3d) keyed by the database content and
+the index settings, so a process loads them in seconds after the first build.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import faiss
+import numpy as np
+import torch
+
+from ds3d.mocap.database import PoseDatabase
+from ds3d.mocap.normalize import normalize_2d
+from ds3d.skeleton import JOINT_SETS, SET_NAMES
+
+
+@dataclass(frozen=True)
+class IndexConfig:
+    """kind: "flat" (exact) or "ivf" (inverted file, approximate: `nlist` lists, `nprobe` searched).
+    storage: "f32" or "f16" (scalar-quantised half floats: half the memory, same neighbours up to
+    rounding)."""
+
+    kind: str = "ivf"
+    nlist: int = 1024
+    nprobe: int = 24
+    storage: str = "f16"
+
+    def factory_string(self) -> str:
+        store = {"f32": "Flat", "f16": "SQfp16"}[self.storage]
+        if self.kind == "flat":
+            return store
+        if self.kind == "ivf":
+            return f"IVF{self.nlist},{store}"
+        raise ValueError(f"unknown index kind {self.kind!r} (flat or ivf)")
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("DS3D_CACHE_DIR", Path.home() / ".cache" / "ds3d"))
+
+
+def database_digest(db: PoseDatabase) -> str:
+    digest = hashlib.sha1(db.poses.numpy().tobytes())
+    digest.update(db.rotations.numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int = 0):
+    """A faiss index over db's normalised 2D vectors of `joint_set`, ids = entry ids."""
+    dim = 2 * len(JOINT_SETS[joint_set])
+    index = faiss.index_factory(dim, config.factory_string())
+    if not index.is_trained:
+        # Train the coarse quantiser on a fixed subsample: 64 points per list is what faiss's
+        # k-means needs, and the seed makes the index reproducible.
+        sample_poses = min(len(db.poses), max(1, 64 * config.nlist // db.num_views + 1))
+        rng = np.random.default_rng(seed)
+        subset = PoseDatabase(db.poses[np.sort(rng.choice(len(db.poses), sample_poses, False))],
+                              db.rotations)  # fmt: skip
+        index.train(np.concatenate(list(subset.projected_2d(joint_set))))
+    for block in db.projected_2d(joint_set):
+        index.add(block)
+    return index
+
+
+class PoseRetriever:
+    """The five per-set indices of one database.
+
+    search(joints_2d (B, 14, 2), k) -> ids (B, 5, k) int64 entry ids, sets in SET_NAMES order.
+    """
+
+    def __init__(self, db: PoseDatabase, config: IndexConfig = IndexConfig(), cache: bool = True):
+        self.db = db
+        self.config = config
+        self.indices = [self._load_or_build(name, cache) for name in SET_NAMES]
+        for index in self.indices:
+            if hasattr(index, "nprobe"):
+                index.nprobe = config.nprobe
+
+    def _load_or_build(self, joint_set: str, cache: bool):
+        settings = "-".join(f"{k}{v}" for k, v in asdict(self.config).items())
+        path = cache_dir() / f"{database_digest(self.db)}-{settings}-{joint_set}.faiss"
+        if cache and path.is_file():
+            return faiss.read_index(str(path))
+        index = build_index(self.db, joint_set, self.config)
+        if cache:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial = path.with_suffix(f".{os.getpid()}.tmp")
+            faiss.write_index(index, str(partial))
+            partial.replace(path)  # atomic: concurrent replicas never read half a file
+        return index
+
+    def search(self, joints_2d: torch.Tensor, k: int) -> torch.Tensor:
+        """joints_2d: (B, 14, 2) float, any unit. Returns (B, 5, k) int64 entry ids (-1 where
+        an approximate index found fewer than k)."""
+        ids = []
+        for name, index in zip(SET_NAMES, self.indices, strict=True):
+            query = normalize_2d(joints_2d[:, list(JOINT_SETS[name])].float().cpu())
+            query = np.ascontiguousarray(query.reshape(len(query), -1).numpy())
+            _, found = index.search(query, k)
+            ids.append(torch.from_numpy(found))
+        return torch.stack(ids, dim=1).to(joints_2d.device)
