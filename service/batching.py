@@ -1,0 +1,225 @@
+"""Micro-batching: requests wait in a bounded queue; one worker task forms batches and runs the
+batch function on an executor, off the event loop.
+
+A batch closes when it holds `max_batch_size` items, or when its oldest item has waited
+`max_wait_s` (timed from that item's arrival, so items that queued while the worker was busy go
+out at once). Each item gets its own outcome: when the batch function raises, the items of that
+batch are run again one by one, so that one bad item fails alone and its neighbours still get
+their results.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class QueueFull(Exception):
+    """The queue cannot take the items of this request now; retry later."""
+
+
+class DeadlineExceeded(Exception):
+    """The request was not answered before its deadline."""
+
+
+class ShuttingDown(Exception):
+    """The batcher is closing and takes no new work."""
+
+
+class ItemFailed(Exception):
+    """The batch function failed on item `index` of a request; `__cause__` says why."""
+
+    def __init__(self, index: int, cause: BaseException):
+        super().__init__(f"item {index}: {cause}")
+        self.index = index
+        self.cause = cause
+
+
+@dataclass
+class _Job(Generic[T, R]):
+    item: T
+    future: asyncio.Future[R]
+    enqueued: float  # loop.time() at arrival
+    deadline: float  # loop.time() after which nobody waits for the result
+
+
+@dataclass
+class BatchStats:
+    """What the worker reports after each batch: its size and the seconds the batch function
+    took (all of its calls, the one-by-one reruns included)."""
+
+    size: int
+    seconds: float
+    queue_wait_s: list[float] = field(default_factory=list)
+
+
+class MicroBatcher(Generic[T, R]):
+    """Batches items submitted from the event loop.
+
+    run_batch: a function mapping a list of B items to a list of B results, in order. It runs on
+    `executor` (give a single-thread executor so that the model never runs concurrently).
+    on_batch: called on the event loop after every batch with its BatchStats (for metrics).
+    """
+
+    def __init__(
+        self,
+        run_batch: Callable[[Sequence[T]], Sequence[R]],
+        *,
+        executor: Executor,
+        max_batch_size: int,
+        max_wait_s: float,
+        max_queue: int,
+        on_batch: Callable[[BatchStats], None] | None = None,
+    ):
+        if max_batch_size < 1 or max_queue < 1 or max_wait_s < 0:
+            raise ValueError("max_batch_size and max_queue must be >= 1, max_wait_s >= 0")
+        self._run_batch = run_batch
+        self._executor = executor
+        self.max_batch_size = max_batch_size
+        self.max_wait_s = max_wait_s
+        self.max_queue = max_queue
+        self._on_batch = on_batch
+        self._pending: collections.deque[_Job[T, R]] = collections.deque()
+        self._wakeup = asyncio.Event()
+        self._closing = False
+        self._worker: asyncio.Task[None] | None = None
+
+    @property
+    def depth(self) -> int:
+        """Items waiting for a batch (not counting the batch being run)."""
+        return len(self._pending)
+
+    @property
+    def saturated(self) -> bool:
+        return len(self._pending) >= self.max_queue
+
+    @property
+    def running(self) -> bool:
+        return self._worker is not None and not self._worker.done() and not self._closing
+
+    def start(self) -> None:
+        """Start the worker task on the running event loop."""
+        if self._worker is None:
+            self._worker = asyncio.get_running_loop().create_task(self._work())
+
+    async def submit(self, item: T, timeout_s: float) -> R:
+        """One item's result; raises what submit_many raises (ItemFailed's cause for a bad item)."""
+        try:
+            return (await self.submit_many([item], timeout_s))[0]
+        except ItemFailed as e:
+            raise e.cause from None
+
+    async def submit_many(self, items: Sequence[T], timeout_s: float) -> list[R]:
+        """Queue all items at once (or none) and wait for their results, in order.
+
+        Raises QueueFull when they do not all fit, ShuttingDown after close(), DeadlineExceeded
+        when they are not all done within timeout_s, ItemFailed for the first item that failed.
+        """
+        if self._closing or self._worker is None:
+            raise ShuttingDown("the service is shutting down")
+        if len(self._pending) + len(items) > self.max_queue:
+            raise QueueFull(f"{len(self._pending)} items queued, limit {self.max_queue}")
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        jobs = [_Job(item, loop.create_future(), now, now + timeout_s) for item in items]
+        self._pending.extend(jobs)
+        self._wakeup.set()
+        futures = [job.future for job in jobs]
+        _, not_done = await asyncio.wait(futures, timeout=timeout_s)
+        if not_done:
+            # Cancelled futures are skipped by the worker, so abandoned work is not computed.
+            for fut in futures:
+                fut.cancel()
+            raise DeadlineExceeded(f"not answered within {timeout_s:g} s")
+        for i, fut in enumerate(futures):
+            if fut.exception() is not None:
+                raise ItemFailed(i, fut.exception())
+        return [fut.result() for fut in futures]
+
+    async def close(self, drain_timeout_s: float) -> None:
+        """Take no new work, finish what is queued (within drain_timeout_s), stop the worker."""
+        self._closing = True
+        self._wakeup.set()
+        if self._worker is None:
+            return
+        try:
+            await asyncio.wait_for(asyncio.shield(self._worker), drain_timeout_s)
+        except TimeoutError:
+            self._worker.cancel()
+            while self._pending:
+                job = self._pending.popleft()
+                if not job.future.done():
+                    job.future.set_exception(ShuttingDown("the service shut down"))
+
+    async def _work(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            if not self._pending:
+                if self._closing:
+                    return
+                self._wakeup.clear()
+                await self._wakeup.wait()
+                continue
+            flush_at = self._pending[0].enqueued + self.max_wait_s
+            while len(self._pending) < self.max_batch_size and not self._closing:
+                remaining = flush_at - loop.time()
+                if remaining <= 0:
+                    break
+                self._wakeup.clear()
+                try:
+                    await asyncio.wait_for(self._wakeup.wait(), remaining)
+                except TimeoutError:
+                    break
+            batch = [self._pending.popleft() for _ in range(min(self.max_batch_size, self.depth))]
+            now = loop.time()
+            live = []
+            for job in batch:
+                if job.future.done():  # its request gave up (deadline) already
+                    continue
+                if now >= job.deadline:
+                    job.future.set_exception(DeadlineExceeded("deadline passed in the queue"))
+                    continue
+                live.append(job)
+            if live:
+                await self._run(live, now)
+
+    async def _run(self, jobs: list[_Job[T, R]], started: float) -> None:
+        loop = asyncio.get_running_loop()
+        t0 = time.perf_counter()
+        try:
+            results = await loop.run_in_executor(
+                self._executor, self._run_batch, [j.item for j in jobs]
+            )
+            if len(results) != len(jobs):
+                raise RuntimeError(f"batch function gave {len(results)} results for {len(jobs)}")
+            outcomes: list[tuple[bool, object]] = [(True, r) for r in results]
+        except Exception as batch_error:
+            if len(jobs) == 1:
+                outcomes = [(False, batch_error)]
+            else:
+                outcomes = [await self._run_one(loop, job.item) for job in jobs]
+        seconds = time.perf_counter() - t0
+        for job, (ok, value) in zip(jobs, outcomes, strict=True):
+            if job.future.done():
+                continue
+            if ok:
+                job.future.set_result(value)
+            else:
+                job.future.set_exception(value)
+        if self._on_batch is not None:
+            self._on_batch(BatchStats(len(jobs), seconds, [started - j.enqueued for j in jobs]))
+
+    async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> tuple[bool, object]:
+        try:
+            (result,) = await loop.run_in_executor(self._executor, self._run_batch, [item])
+            return True, result
+        except Exception as e:
+            return False, e

@@ -1,0 +1,331 @@
+"""Python client SDK of the ds3d service: `PoseClient` and its async twin `AsyncPoseClient`.
+
+Depends on httpx and numpy only (no torch, faiss or fastapi), so it installs anywhere:
+
+    with PoseClient("http://127.0.0.1:8000") as client:
+        res = client.lift(joints_2d)            # (14, 2) or (B, 14, 2) pixels
+        res.joints_3d                           # (B, 14, 3) float32, millimetres
+        pose = client.estimate("person.jpg")    # path, image bytes, or (H, W, 3) uint8 RGB array
+        pose.joints_2d, pose.joints_3d          # (14, 2) pixels, (14, 3) millimetres
+
+Both clients share one sans-IO core (`_Protocol`: build a request, parse a response, decide on a
+retry); they differ only in how they send and sleep. A 503 (queue full, shutting down) or a
+refused connection is retried with exponential backoff, honouring the server's Retry-After.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import struct
+import time
+import zlib
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ImageLike = str | Path | bytes | np.ndarray
+
+
+class ServiceError(Exception):
+    """The service answered with an error: HTTP status, its error code and message."""
+
+    def __init__(self, status: int, code: str, message: str, retry_after: float | None = None):
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message, self.retry_after = status, code, message, retry_after
+
+
+@dataclass(frozen=True)
+class LiftResult:
+    """3D poses of B 2D poses, in the order sent."""
+
+    joints_3d: np.ndarray  # (B, 14, 3) float32, millimetres
+    joint_set: list[str]  # (B,) the joint set each pose was fitted with
+    energy: np.ndarray  # (B,) float32, final fit energy
+    joint_names: list[str]
+    model: str
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """2D and 3D pose of the person in one image."""
+
+    joints_2d: np.ndarray  # (14, 2) float32, pixels of the image sent
+    joints_3d: np.ndarray  # (14, 3) float32, millimetres
+    confidence: np.ndarray  # (14,) float32 in [0, 1]
+    joint_set: str
+    joint_names: list[str]
+    model: str
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Request:
+    method: str
+    path: str
+    kwargs: dict
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """(H, W, 3) or (H, W) uint8 -> PNG bytes (no compression filter; zlib level 6)."""
+    img = np.ascontiguousarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise ValueError(f"need an (H, W, 3) or (H, W) uint8 array, got {img.dtype} {img.shape}")
+    h, w = img.shape[:2]
+    color_type = 2 if img.ndim == 3 else 0
+    rows = img.reshape(h, -1)
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    header = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
+
+
+_MAGIC = (
+    (b"\xff\xd8\xff", "image/jpeg"),
+    (b"\x89PNG", "image/png"),
+    (b"BM", "image/bmp"),
+    (b"GIF8", "image/gif"),
+    (b"RIFF", "image/webp"),
+)
+
+
+def _image_bytes(image: ImageLike) -> tuple[bytes, str]:
+    """(file bytes, content type) of a path, raw bytes or an RGB uint8 array."""
+    if isinstance(image, np.ndarray):
+        return encode_png(image), "image/png"
+    data = Path(image).read_bytes() if isinstance(image, str | Path) else bytes(image)
+    ctype = next((t for magic, t in _MAGIC if data.startswith(magic)), "application/octet-stream")
+    return data, ctype
+
+
+def _retry_after(resp: httpx.Response) -> float | None:
+    value = resp.headers.get("retry-after")
+    try:
+        return max(0.0, float(value)) if value is not None else None
+    except ValueError:  # an HTTP date: fall back to our own backoff
+        return None
+
+
+class _Protocol:
+    """Requests, responses and the retry policy, shared by the sync and async clients."""
+
+    def __init__(self, retries: int, backoff_s: float, max_backoff_s: float):
+        self.retries, self.backoff_s, self.max_backoff_s = retries, backoff_s, max_backoff_s
+
+    def lift_request(self, joints_2d, intrinsics=None, visible=None) -> _Request:
+        joints = np.asarray(joints_2d, dtype=np.float64)
+        if joints.ndim == 2:
+            joints = joints[None]
+        if joints.ndim != 3 or joints.shape[-1] != 2:
+            raise ValueError(f"joints_2d must be (14, 2) or (B, 14, 2), got {joints.shape}")
+        b = joints.shape[0]
+        ks = None if intrinsics is None else np.broadcast_to(np.asarray(intrinsics), (b, 3, 3))
+        vis = (
+            None
+            if visible is None
+            else np.broadcast_to(np.asarray(visible, bool), joints.shape[:2])
+        )
+        items = []
+        for i in range(b):
+            item: dict = {"joints_2d": joints[i].tolist()}
+            if ks is not None:
+                item["intrinsics"] = np.asarray(ks[i], dtype=np.float64).tolist()
+            if vis is not None:
+                item["visible"] = vis[i].tolist()
+            items.append(item)
+        return _Request("POST", "/v1/lift", {"json": {"items": items}})
+
+    def pose_request(self, image: ImageLike, bbox=None, intrinsics=None) -> _Request:
+        data, ctype = _image_bytes(image)
+        form = {}
+        if bbox is not None:
+            form["bbox"] = str(np.asarray(bbox, dtype=np.float64).reshape(4).tolist())
+        if intrinsics is not None:
+            form["intrinsics"] = str(
+                np.asarray(intrinsics, dtype=np.float64).reshape(3, 3).tolist()
+            )
+        return _Request(
+            "POST", "/v1/pose", {"files": {"image": ("image", data, ctype)}, "data": form}
+        )
+
+    @staticmethod
+    def raise_for_error(resp: httpx.Response) -> None:
+        if resp.is_success:
+            return
+        try:
+            err = resp.json()["error"]
+            code, message = str(err["code"]), str(err["message"])
+        except (ValueError, KeyError, TypeError):
+            code, message = f"http_{resp.status_code}", resp.text[:200]
+        raise ServiceError(resp.status_code, code, message, _retry_after(resp))
+
+    def parse_lift(self, resp: httpx.Response) -> LiftResult:
+        self.raise_for_error(resp)
+        body = resp.json()
+        items = body["items"]
+        return LiftResult(
+            joints_3d=np.asarray([it["joints_3d"] for it in items], dtype=np.float32),
+            joint_set=[it["joint_set"] for it in items],
+            energy=np.asarray([it["energy"] for it in items], dtype=np.float32),
+            joint_names=list(body["joint_names"]),
+            model=body["model"],
+            timings_ms=dict(body.get("timings_ms", {})),
+        )
+
+    def parse_pose(self, resp: httpx.Response) -> PoseResult:
+        self.raise_for_error(resp)
+        body = resp.json()
+        return PoseResult(
+            joints_2d=np.asarray(body["joints_2d"], dtype=np.float32),
+            joints_3d=np.asarray(body["joints_3d"], dtype=np.float32),
+            confidence=np.asarray(body["confidence"], dtype=np.float32),
+            joint_set=body["joint_set"],
+            joint_names=list(body["joint_names"]),
+            model=body["model"],
+            timings_ms=dict(body.get("timings_ms", {})),
+        )
+
+    def retry_delay(self, attempt: int, resp: httpx.Response | None) -> float | None:
+        """Seconds to wait before retry number attempt + 1, or None to stop: retry a 503 or a
+        refused connection (resp None) up to `retries` times; Retry-After wins over the backoff."""
+        if attempt >= self.retries or (resp is not None and resp.status_code != 503):
+            return None
+        backoff = min(self.max_backoff_s, self.backoff_s * 2**attempt) * random.uniform(0.5, 1.0)
+        hinted = _retry_after(resp) if resp is not None else None
+        return min(self.max_backoff_s, hinted) if hinted is not None else backoff
+
+
+class PoseClient:
+    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on 503."""
+
+    def __init__(
+        self,
+        base_url: str,
+        timeout: float = 30.0,
+        retries: int = 3,
+        backoff_s: float = 0.1,
+        max_backoff_s: float = 10.0,
+    ):
+        self._proto = _Protocol(retries, backoff_s, max_backoff_s)
+        self._http = httpx.Client(base_url=base_url, timeout=timeout)
+
+    def _send(self, req: _Request, parse):
+        attempt = 0
+        while True:
+            try:
+                resp = self._http.request(req.method, req.path, **req.kwargs)
+            except httpx.ConnectError:
+                if (delay := self._proto.retry_delay(attempt, None)) is None:
+                    raise
+            else:
+                if (delay := self._proto.retry_delay(attempt, resp)) is None:
+                    return parse(resp)
+            time.sleep(delay)
+            attempt += 1
+
+    def lift(self, joints_2d, intrinsics=None, visible=None) -> LiftResult:
+        """joints_2d (14, 2) or (B, 14, 2) pixels; intrinsics (3, 3) or (B, 3, 3); visible (14,)
+        or (B, 14) bool -> LiftResult with joints_3d (B, 14, 3) mm."""
+        req = self._proto.lift_request(joints_2d, intrinsics, visible)
+        return self._send(req, self._proto.parse_lift)
+
+    def estimate(self, image: ImageLike, bbox=None, intrinsics=None) -> PoseResult:
+        """image: a path, image file bytes, or an (H, W, 3) uint8 RGB array; bbox (4,) x0, y0,
+        x1, y1 pixels; intrinsics (3, 3)."""
+        return self._send(self._proto.pose_request(image, bbox, intrinsics), self._proto.parse_pose)
+
+    def estimate_many(self, images: Iterable[ImageLike], concurrency: int = 8) -> list[PoseResult]:
+        """estimate() of each image, `concurrency` requests in flight; results in order."""
+        with ThreadPoolExecutor(max(1, concurrency)) as pool:
+            return list(pool.map(self.estimate, images))
+
+    def healthy(self) -> bool:
+        return self._http.get("/healthz").status_code == 200
+
+    def ready(self) -> bool:
+        return self._http.get("/readyz").status_code == 200
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> PoseClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class AsyncPoseClient:
+    """The asyncio twin of PoseClient (same arguments, same results, awaitable methods)."""
+
+    def __init__(
+        self,
+        base_url: str,
+        timeout: float = 30.0,
+        retries: int = 3,
+        backoff_s: float = 0.1,
+        max_backoff_s: float = 10.0,
+    ):
+        self._proto = _Protocol(retries, backoff_s, max_backoff_s)
+        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout)
+
+    async def _send(self, req: _Request, parse):
+        attempt = 0
+        while True:
+            try:
+                resp = await self._http.request(req.method, req.path, **req.kwargs)
+            except httpx.ConnectError:
+                if (delay := self._proto.retry_delay(attempt, None)) is None:
+                    raise
+            else:
+                if (delay := self._proto.retry_delay(attempt, resp)) is None:
+                    return parse(resp)
+            await asyncio.sleep(delay)
+            attempt += 1
+
+    async def lift(self, joints_2d, intrinsics=None, visible=None) -> LiftResult:
+        req = self._proto.lift_request(joints_2d, intrinsics, visible)
+        return await self._send(req, self._proto.parse_lift)
+
+    async def estimate(self, image: ImageLike, bbox=None, intrinsics=None) -> PoseResult:
+        req = self._proto.pose_request(image, bbox, intrinsics)
+        return await self._send(req, self._proto.parse_pose)
+
+    async def estimate_many(
+        self, images: Sequence[ImageLike], concurrency: int = 8
+    ) -> list[PoseResult]:
+        gate = asyncio.Semaphore(max(1, concurrency))
+
+        async def one(image):
+            async with gate:
+                return await self.estimate(image)
+
+        return list(await asyncio.gather(*(one(im) for im in images)))
+
+    async def healthy(self) -> bool:
+        return (await self._http.get("/healthz")).status_code == 200
+
+    async def ready(self) -> bool:
+        return (await self._http.get("/readyz")).status_code == 200
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncPoseClient:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()

@@ -1,0 +1,105 @@
+"""Every error the service answers is JSON `{"error": {"code", "message"[, "details"]}}`.
+This module maps the library's typed errors, the batcher's and the framework's to status codes."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from ds3d.errors import InvalidImage, InvalidPose
+from service.batching import DeadlineExceeded, ItemFailed, QueueFull, ShuttingDown
+
+log = logging.getLogger("service")
+
+
+class ApiError(Exception):
+    """An error answer: HTTP status, stable code, human message, optional extra headers."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        headers: dict | None = None,
+        details: list[dict] | None = None,
+    ):
+        super().__init__(message)
+        self.status, self.code, self.message = status, code, message
+        self.headers, self.details = headers, details
+
+
+def error_response(err: ApiError) -> JSONResponse:
+    body: dict = {"code": err.code, "message": err.message}
+    if err.details:
+        body["details"] = err.details
+    return JSONResponse({"error": body}, status_code=err.status, headers=err.headers)
+
+
+def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
+    """The answer for an exception raised while serving a request."""
+    retry = {"Retry-After": str(retry_after_s)}
+    if isinstance(exc, ApiError):
+        return exc
+    if isinstance(exc, ItemFailed):
+        inner = to_api_error(exc.cause, retry_after_s)
+        inner.message = f"items[{exc.index}]: {inner.message}"
+        return inner
+    if isinstance(exc, QueueFull):
+        return ApiError(503, "overloaded", f"the queue is full ({exc}); retry later", retry)
+    if isinstance(exc, ShuttingDown):
+        return ApiError(503, "shutting_down", str(exc), retry)
+    if isinstance(exc, DeadlineExceeded):
+        return ApiError(504, "timeout", f"the request timed out: {exc}")
+    if isinstance(exc, InvalidPose):
+        return ApiError(422, "invalid_pose", str(exc))
+    if isinstance(exc, InvalidImage):
+        return ApiError(422, "invalid_image", str(exc))
+    log.exception("unexpected error", exc_info=exc)
+    return ApiError(500, "internal", f"internal error: {type(exc).__name__}")
+
+
+_HTTP_CODES = {
+    400: "bad_request",
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+}
+
+
+def install_handlers(app: FastAPI, retry_after_s: int) -> None:
+    """Answer every error of `app` in the JSON error shape."""
+
+    @app.exception_handler(ApiError)
+    async def _api(_: Request, exc: ApiError):
+        return error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, exc: RequestValidationError):
+        errors = exc.errors()
+        if any(e.get("type") == "json_invalid" for e in errors):
+            return error_response(ApiError(422, "invalid_json", "the body is not valid JSON"))
+        details = [
+            {
+                "loc": [str(p) for p in e.get("loc", ())],
+                "msg": e.get("msg", ""),
+                "type": e.get("type"),
+            }
+            for e in errors[:20]
+        ]
+        first = details[0] if details else {"loc": [], "msg": "invalid request"}
+        message = f"{'.'.join(first['loc'])}: {first['msg']}"
+        return error_response(ApiError(422, "invalid_request", message, details=details))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException):
+        code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
+        return error_response(ApiError(exc.status_code, code, str(exc.detail), exc.headers))
+
+    @app.exception_handler(Exception)
+    async def _other(_: Request, exc: Exception):
+        return error_response(to_api_error(exc, retry_after_s))

@@ -1,0 +1,80 @@
+"""Request and response bodies of the HTTP API (pydantic; they make the OpenAPI at /docs).
+
+Units: pixels for 2D joints, millimetres for 3D joints; joints in LSP order (`joint_names`).
+Non-finite numbers (NaN, Infinity, which Python's JSON parser accepts) are refused with 422.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ds3d.skeleton import NUM_JOINTS
+
+Point2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+Point3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Row3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Matrix3 = Annotated[list[Row3], Field(min_length=3, max_length=3)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+
+
+class LiftItem(_Strict):
+    joints_2d: Annotated[list[Point2], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] = Field(
+        description="14 joints (LSP order) as [x, y] pixels"
+    )
+    intrinsics: Matrix3 | None = Field(
+        None, description="3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]; omitted: unknown"
+    )
+    visible: Annotated[list[bool], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] | None = (
+        Field(None, description="14 flags, false for a joint whose 2D position is a guess")
+    )
+
+
+class LiftRequest(_Strict):
+    items: list[LiftItem] = Field(min_length=1, description="poses to lift, answered in order")
+
+
+class LiftResult(BaseModel):
+    joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
+    joint_set: str = Field(description="the joint set the 3D pose was fitted with")
+    energy: float = Field(description="the fit's final energy (lower fits better)")
+
+
+class LiftResponse(BaseModel):
+    items: list[LiftResult]
+    joint_names: list[str]
+    model: str = Field(description="id of the model that answered")
+    timings_ms: dict[str, float] = Field(
+        description="queue wait, per-stage model time (of the batches the items ran in), total"
+    )
+
+
+class PoseResponse(BaseModel):
+    joint_names: list[str]
+    joints_2d: list[Point2] = Field(description="14 joints as [x, y] pixels of the input image")
+    joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
+    confidence: list[float] = Field(description="per-joint confidence in [0, 1]")
+    joint_set: str
+    model: str
+    timings_ms: dict[str, float]
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="stable machine-readable code, e.g. invalid_image")
+    message: str
+    details: list[dict] | None = None
+
+
+class ErrorResponse(BaseModel):
+    error: ErrorDetail
+
+
+class Health(BaseModel):
+    status: str
+    model: str | None = None
+    queue_depth: int | None = None
+    pose_available: bool | None = None
