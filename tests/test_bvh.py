@@ -155,6 +155,7 @@ GOOD = (
     [
         (GOOD.replace("HIERARCHY\n", ""), "line 1: missing HIERARCHY"),
         (GOOD.replace("MOTION", "MOTON"), "no MOTION section"),
+        (GOOD.replace("JOINT arm", "JOINT root"), "line 6: joint name 'root' used twice"),
         (
             GOOD.replace("Zrotation Xrotation Yrotation", "Zrotation Wrotation Yrotation"),
             "line 5: unknown channel 'Wrotation'",

@@ -134,7 +134,9 @@ def _parse_hierarchy(lines: list[str], source: str):
     channels: list[tuple[str, ...]] = []
 
     def joint(parent: int, end_site: bool) -> None:
-        name = f"{names[parent]}/End" if end_site else take()[0]
+        name, line = (f"{names[parent]}/End", tokens[pos - 1][1]) if end_site else take()
+        if name in names:
+            fail(f"joint name {name!r} used twice", line)
         index = len(names)
         names.append(name)
         parents.append(parent)
@@ -143,7 +145,7 @@ def _parse_hierarchy(lines: list[str], source: str):
         offsets.append([number(), number(), number()])
         declared: tuple[str, ...] = ()
         if not end_site:
-            tok, line = take("CHANNELS")
+            take("CHANNELS")
             count_tok, line = take()
             if not count_tok.isdigit():
                 fail(f"bad channel count {count_tok!r}", line)
@@ -173,9 +175,6 @@ def _parse_hierarchy(lines: list[str], source: str):
     joint(-1, end_site=False)
     if pos != len(tokens):
         fail(f"unexpected {tokens[pos][0]!r} after the root joint", tokens[pos][1])
-    if len(set(names)) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        fail(f"joint name {dup!r} used twice", 1)
     return (
         tuple(names),
         np.asarray(parents, dtype=np.int64),
