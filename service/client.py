@@ -209,7 +209,9 @@ class _Protocol:
 
 
 class PoseClient:
-    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on 503."""
+    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on 503 or a
+    refused connection, waiting backoff_s * 2**attempt (jittered, at most max_backoff_s) or the
+    server's Retry-After; transport: an httpx transport (e.g. a Unix socket), default TCP."""
 
     def __init__(
         self,
@@ -218,9 +220,10 @@ class PoseClient:
         retries: int = 3,
         backoff_s: float = 0.1,
         max_backoff_s: float = 10.0,
+        transport: httpx.BaseTransport | None = None,
     ):
         self._proto = _Protocol(retries, backoff_s, max_backoff_s)
-        self._http = httpx.Client(base_url=base_url, timeout=timeout)
+        self._http = httpx.Client(base_url=base_url, timeout=timeout, transport=transport)
 
     def _send(self, req: _Request, parse):
         attempt = 0
@@ -278,9 +281,10 @@ class AsyncPoseClient:
         retries: int = 3,
         backoff_s: float = 0.1,
         max_backoff_s: float = 10.0,
+        transport: httpx.AsyncBaseTransport | None = None,
     ):
         self._proto = _Protocol(retries, backoff_s, max_backoff_s)
-        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout)
+        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, transport=transport)
 
     async def _send(self, req: _Request, parse):
         attempt = 0

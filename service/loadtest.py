@@ -1,0 +1,243 @@
+"""Load test of a local ds3d service.
+
+    python -m service.loadtest http://127.0.0.1:8000 --mode closed --concurrency 16 --duration 30
+    python -m service.loadtest http://127.0.0.1:8000 --mode open --rate 50 --duration 30
+    python -m service.loadtest URL --endpoint pose --images DIR ...
+
+Closed loop: N workers, each sends its next request when the previous one is answered.
+Open loop: requests start at a fixed rate whether or not earlier ones were answered (this is how
+overload shows). /v1/lift payloads are real 2D poses, random LSP annotations
+(data_root()/lsp/joints.mat); /v1/pose payloads are the image files of a folder.
+Raw httpx, no retries: every status is counted as the service gave it. Prints and writes JSON
+(throughput, latency percentiles, counts by status) and a PNG of latency over time.
+Bounded: at most --max-requests requests and --duration seconds (plus the last answers); only
+local targets (127.0.0.1, localhost, ::1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import random
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import httpx
+import numpy as np
+
+LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1"}
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
+
+
+@dataclass
+class Sample:
+    start_s: float  # since the test began
+    latency_s: float
+    status: str  # "200", "503", ... or "error:<exception>"
+
+
+def lsp_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """LSP joints.mat -> joints_2d (N, 14, 2) float32 0-based pixels, visible (N, 14) bool."""
+    from scipy.io import loadmat
+
+    joints = loadmat(str(path))["joints"]  # (3, 14, N): x, y, flag with 0 = visible
+    xy = np.transpose(joints[:2], (2, 1, 0)).astype(np.float32) - 1.0
+    visible = np.transpose(joints[2], (1, 0)) == 0
+    return xy, visible
+
+
+def lift_payloads(poses: tuple[np.ndarray, np.ndarray], items: int, count: int, seed: int):
+    """`count` JSON bodies of `items` random poses each."""
+    xy, visible = poses
+    rng = random.Random(seed)
+    bodies = []
+    for _ in range(count):
+        idx = [rng.randrange(len(xy)) for _ in range(items)]
+        bodies.append(
+            {"items": [{"joints_2d": xy[i].tolist(), "visible": visible[i].tolist()} for i in idx]}
+        )
+    return bodies
+
+
+def image_payloads(folder: Path, limit: int) -> list[tuple[str, bytes]]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
+    if not files:
+        raise SystemExit(f"no images in {folder}")
+    return [(p.name, p.read_bytes()) for p in files]
+
+
+def summarize(samples: list[Sample], duration_s: float) -> dict:
+    """Throughput (all answers and 200s per second), latency percentiles (ms) of the 200s and of
+    all answers, counts by status."""
+    counts: dict[str, int] = {}
+    for s in samples:
+        counts[s.status] = counts.get(s.status, 0) + 1
+
+    def pct(values):
+        if not values:
+            return None
+        v = np.asarray(values) * 1000.0
+        return {
+            "p50": float(np.percentile(v, 50)),
+            "p95": float(np.percentile(v, 95)),
+            "p99": float(np.percentile(v, 99)),
+            "max": float(v.max()),
+        }
+
+    ok = [s.latency_s for s in samples if s.status == "200"]
+    return {
+        "requests": len(samples),
+        "duration_s": duration_s,
+        "throughput_rps": len(samples) / duration_s if duration_s > 0 else 0.0,
+        "ok_rps": len(ok) / duration_s if duration_s > 0 else 0.0,
+        "latency_ms_ok": pct(ok),
+        "latency_ms_all": pct([s.latency_s for s in samples]),
+        "max_latency_ms_by_status": {
+            st: 1000.0 * max(s.latency_s for s in samples if s.status == st) for st in counts
+        },
+        "status_counts": dict(sorted(counts.items())),
+    }
+
+
+def plot(samples: list[Sample], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for status in sorted({s.status for s in samples}):
+        pts = [(s.start_s, s.latency_s * 1000) for s in samples if s.status == status]
+        ax.scatter(*zip(*pts, strict=True), s=4, label=f"{status} ({len(pts)})")
+    ax.set_xlabel("request start (s)")
+    ax.set_ylabel("latency (ms)")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+class Runner:
+    def __init__(self, client: httpx.AsyncClient, endpoint: str, payloads: list, t0: float):
+        self.client, self.endpoint, self.payloads, self.t0 = client, endpoint, payloads, t0
+        self.samples: list[Sample] = []
+        self._next = 0
+
+    async def one(self) -> None:
+        payload = self.payloads[self._next % len(self.payloads)]
+        self._next += 1
+        start = time.perf_counter()
+        try:
+            if self.endpoint == "lift":
+                resp = await self.client.post("/v1/lift", json=payload)
+            else:
+                name, data = payload
+                resp = await self.client.post("/v1/pose", files={"image": (name, data)})
+            status = str(resp.status_code)
+        except httpx.HTTPError as e:
+            status = f"error:{type(e).__name__}"
+        end = time.perf_counter()
+        self.samples.append(Sample(start - self.t0, end - start, status))
+
+
+async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_requests: int):
+    stop_at = runner.t0 + duration_s
+    budget = iter(range(max_requests))
+
+    async def worker():
+        while time.perf_counter() < stop_at and next(budget, None) is not None:
+            await runner.one()
+
+    await asyncio.gather(*(worker() for _ in range(concurrency)))
+
+
+async def open_loop(runner: Runner, rate: float, duration_s: float, max_requests: int):
+    count = min(max_requests, int(rate * duration_s))
+    tasks = []
+    for i in range(count):
+        delay = runner.t0 + i / rate - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        tasks.append(asyncio.create_task(runner.one()))
+    await asyncio.gather(*tasks)
+
+
+async def run(args) -> tuple[dict, list[Sample]]:
+    if args.endpoint == "lift":
+        from ds3d.paths import data_root
+
+        poses = lsp_poses(args.poses or data_root() / "lsp" / "joints.mat")
+        payloads = lift_payloads(poses, args.items, 512, args.seed)
+    else:
+        if args.images is None:
+            raise SystemExit("--endpoint pose needs --images DIR")
+        payloads = image_payloads(args.images, 256)
+    limits = httpx.Limits(max_connections=args.max_connections, max_keepalive_connections=64)
+    async with httpx.AsyncClient(base_url=args.url, timeout=args.timeout, limits=limits) as client:
+        runner = Runner(client, args.endpoint, payloads, time.perf_counter())
+        if args.mode == "closed":
+            await closed_loop(runner, args.concurrency, args.duration, args.max_requests)
+        else:
+            await open_loop(runner, args.rate, args.duration, args.max_requests)
+        elapsed = time.perf_counter() - runner.t0
+        result = summarize(runner.samples, elapsed)
+        after = {path: (await client.get(path)).status_code for path in ("/healthz", "/readyz")}
+    result.update(
+        endpoint=args.endpoint,
+        mode=args.mode,
+        concurrency=args.concurrency if args.mode == "closed" else None,
+        rate=args.rate if args.mode == "open" else None,
+        items_per_request=args.items if args.endpoint == "lift" else 1,
+        health_after=after,
+    )
+    return result, runner.samples
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(
+        prog="python -m service.loadtest", description=__doc__.split("\n")[0]
+    )
+    p.add_argument("url", help="base URL of a local service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--endpoint", choices=("lift", "pose"), default="lift")
+    p.add_argument("--mode", choices=("closed", "open"), default="closed")
+    p.add_argument("--concurrency", type=int, default=4, help="closed loop: requests in flight")
+    p.add_argument("--rate", type=float, default=10.0, help="open loop: requests per second")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds of load (max 600)")
+    p.add_argument("--max-requests", type=int, default=100_000)
+    p.add_argument("--items", type=int, default=1, help="lift: poses per request")
+    p.add_argument("--poses", type=Path, help="LSP joints.mat (default: data_root()/lsp)")
+    p.add_argument("--images", type=Path, help="pose: folder of images")
+    p.add_argument("--timeout", type=float, default=30.0, help="client timeout per request (s)")
+    p.add_argument("--max-connections", type=int, default=512)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="folder for JSON + PNG")
+    p.add_argument("--name", help="file stem (default: endpoint_mode_N)")
+    args = p.parse_args(argv)
+    if urlsplit(args.url).hostname not in LOCAL_HOSTS:
+        p.error("only local targets (127.0.0.1, localhost, ::1) are allowed")
+    if not 0 < args.duration <= 600 or args.concurrency < 1 or args.rate <= 0:
+        p.error("need 0 < duration <= 600, concurrency >= 1, rate > 0")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    result, samples = asyncio.run(run(args))
+    load = f"c{args.concurrency}" if args.mode == "closed" else f"r{args.rate:g}"
+    stem = args.name or f"{args.endpoint}_{args.mode}_{load}"
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    if samples:
+        plot(samples, f"{args.endpoint} {args.mode} {load}", args.out / f"{stem}.png")
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""The client SDK on its own: request encoding, error decoding, the retry policy, and that it
+imports neither torch, faiss nor fastapi. Responses come from an httpx MockTransport (the
+transport layer, not a model); the SDK against the real service is in test_service.py."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import subprocess
+import sys
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.client import AsyncPoseClient, PoseClient, ServiceError, encode_png
+
+
+def lift_answer(request: httpx.Request) -> httpx.Response:
+    items = json.loads(request.content)["items"]
+    out = [
+        {"joints_3d": [[i, 0.0, 1.0]] * 14, "joint_set": "all", "energy": 0.5}
+        for i in range(len(items))
+    ]
+    return httpx.Response(
+        200,
+        json={"items": out, "joint_names": ["j"] * 14, "model": "m", "timings_ms": {"total": 1.0}},
+    )
+
+
+class Flaky:
+    """503 with Retry-After for the first `fails` calls, then lift answers."""
+
+    def __init__(self, fails: int, retry_after: str = "0"):
+        self.fails, self.retry_after, self.calls = fails, retry_after, 0
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.calls += 1
+        if self.calls <= self.fails:
+            err = {"error": {"code": "overloaded", "message": "queue full"}}
+            return httpx.Response(503, json=err, headers={"Retry-After": self.retry_after})
+        return lift_answer(request)
+
+
+def test_sdk_imports_no_heavy_libraries():
+    code = (
+        "import sys, service.client; print(sorted({'torch','faiss','fastapi'} & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_lift_encodes_a_batch_and_decodes_typed_arrays():
+    seen = []
+
+    def handler(request):
+        seen.append(json.loads(request.content))
+        return lift_answer(request)
+
+    client = PoseClient("http://svc", transport=httpx.MockTransport(handler))
+    x = np.arange(3 * 14 * 2, dtype=np.float32).reshape(3, 14, 2)
+    k = np.array([[1000, 0, 500], [0, 1000, 500], [0, 0, 1]], dtype=np.float32)
+    res = client.lift(x, intrinsics=k, visible=np.ones(14, bool))
+    body = seen[0]["items"]
+    assert len(body) == 3 and np.array_equal(np.asarray(body[2]["joints_2d"]), x[2])
+    assert body[1]["intrinsics"] == k.tolist() and body[0]["visible"] == [True] * 14
+    assert res.joints_3d.shape == (3, 14, 3) and res.joints_3d.dtype == np.float32
+    assert res.joints_3d[2, 0, 0] == 2 and res.joint_set == ["all"] * 3 and res.model == "m"
+    # one pose (14, 2) is a batch of one
+    assert client.lift(x[0]).joints_3d.shape == (1, 14, 3)
+    with pytest.raises(ValueError):
+        client.lift(np.zeros((14, 3)))
+
+
+def test_503_is_retried_honouring_retry_after_then_succeeds():
+    flaky = Flaky(fails=2, retry_after="0")
+    client = PoseClient("http://svc", retries=3, transport=httpx.MockTransport(flaky))
+    assert client.lift(np.zeros((14, 2))).joints_3d.shape == (1, 14, 3)
+    assert flaky.calls == 3
+
+
+def test_retries_run_out_and_the_error_is_typed():
+    flaky = Flaky(fails=10, retry_after="0")
+    client = PoseClient("http://svc", retries=2, transport=httpx.MockTransport(flaky))
+    with pytest.raises(ServiceError) as info:
+        client.lift(np.zeros((14, 2)))
+    assert flaky.calls == 3
+    assert (info.value.status, info.value.code, info.value.retry_after) == (503, "overloaded", 0.0)
+
+
+def test_other_errors_are_not_retried():
+    calls = []
+
+    def handler(request):
+        calls.append(1)
+        return httpx.Response(422, json={"error": {"code": "invalid_pose", "message": "NaN"}})
+
+    client = PoseClient("http://svc", retries=3, transport=httpx.MockTransport(handler))
+    with pytest.raises(ServiceError) as info:
+        client.lift(np.zeros((14, 2)))
+    assert len(calls) == 1 and info.value.code == "invalid_pose"
+
+
+def test_retry_after_sets_the_wait():
+    client = PoseClient("http://svc", retries=1, backoff_s=0.0)
+    resp = httpx.Response(503, headers={"Retry-After": "2"})
+    assert client._proto.retry_delay(0, resp) == 2.0
+    assert client._proto.retry_delay(1, resp) is None  # retries spent
+    assert client._proto.retry_delay(0, httpx.Response(504)) is None
+
+
+def test_async_twin_shares_the_behaviour():
+    flaky = Flaky(fails=1)
+
+    async def main():
+        async with AsyncPoseClient("http://svc", transport=httpx.MockTransport(flaky)) as client:
+            return await client.lift(np.zeros((2, 14, 2)))
+
+    res = asyncio.run(main())
+    assert res.joints_3d.shape == (2, 14, 3) and flaky.calls == 2
+
+
+def test_estimate_sends_a_numpy_image_as_png_with_bbox():
+    seen = {}
+
+    def handler(request: httpx.Request):
+        seen["ctype"] = request.headers["content-type"]
+        seen["body"] = request.read()
+        return httpx.Response(
+            200,
+            json={
+                "joint_names": ["j"] * 14,
+                "joints_2d": [[1.0, 2.0]] * 14,
+                "joints_3d": [[1.0, 2.0, 3.0]] * 14,
+                "confidence": [0.5] * 14,
+                "joint_set": "up",
+                "model": "m",
+                "timings_ms": {},
+            },
+        )
+
+    client = PoseClient("http://svc", transport=httpx.MockTransport(handler))
+    img = np.random.default_rng(0).integers(0, 255, (6, 9, 3), dtype=np.uint8)
+    res = client.estimate(img, bbox=[1, 2, 3, 4])
+    assert seen["ctype"].startswith("multipart/form-data")
+    assert b"\x89PNG" in seen["body"] and b"[1.0, 2.0, 3.0, 4.0]" in seen["body"]
+    assert res.joints_2d.shape == (14, 2) and res.confidence.shape == (14,)
+    assert res.joint_set == "up"
+
+
+def test_encode_png_round_trips():
+    img = np.random.default_rng(1).integers(0, 255, (7, 5, 3), dtype=np.uint8)
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(encode_png(img)))), img)
+    with pytest.raises(ValueError):
+        encode_png(img.astype(np.float32))
