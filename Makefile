@@ -35,3 +35,6 @@ build-db: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
+
+serve: $(STAMP)
+	$(BIN)/ds3d-serve --host 127.0.0.1 --port 8000

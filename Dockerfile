@@ -1,0 +1,35 @@
+# CPU image of the ds3d service: python:3.11-slim, CPU torch pinned and installed first (so that
+# no CUDA torch is pulled in), the project with its [service] extra, the bundled models baked in,
+# a non-root user, a health check on /healthz, uvicorn (through `ds3d-serve`).
+FROM python:3.11-slim
+
+ARG TORCH_VERSION=2.13.0
+ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    OMP_NUM_THREADS=1 \
+    DS3D_HOST=0.0.0.0 \
+    DS3D_PORT=8000 \
+    DS3D_MODEL_DIR=/app/models \
+    DS3D_TORCH_THREADS=1
+
+RUN pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"
+
+WORKDIR /app
+# Dependencies first (a layer that survives code edits), then the code, then the models.
+COPY pyproject.toml README.md ./
+COPY ds3d ds3d
+COPY service service
+# Editable, so that ds3d finds its bundled models/ beside the package as in a checkout.
+RUN pip install --no-cache-dir -e ".[service]" \
+    && useradd --create-home --uid 10001 --user-group ds3d
+COPY models models
+
+USER 10001:10001
+EXPOSE 8000
+HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
+    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]
+CMD ["ds3d-serve"]
