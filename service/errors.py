@@ -100,6 +100,8 @@ def install_handlers(app: FastAPI, retry_after_s: int) -> None:
         code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
         return error_response(ApiError(exc.status_code, code, str(exc.detail), exc.headers))
 
-    @app.exception_handler(Exception)
-    async def _other(_: Request, exc: Exception):
+    async def _mapped(_: Request, exc: Exception):
         return error_response(to_api_error(exc, retry_after_s))
+
+    for kind in (ItemFailed, QueueFull, ShuttingDown, DeadlineExceeded, InvalidPose, InvalidImage):
+        app.add_exception_handler(kind, _mapped)
