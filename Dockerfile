@@ -29,6 +29,8 @@ RUN pip install --no-cache-dir -e ".[service]" \
 COPY models models
 
 USER 10001:10001
+# Build the retrieval indexes once, into the image (the user's cache), so replicas start fast.
+RUN python -c "from ds3d.lifter import Lifter; Lifter.load()"
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
     CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Load-test matrix of /v1/lift on this machine: for each max_batch_size, start the service on
+# the bundled model (one model thread), run closed-loop tests at several concurrencies, stop it.
+#   docker/loadtest_matrix.sh [DURATION_S] [OUT_DIR]
+# Results: OUT_DIR/lift_closed_c{N}_b{B}.json (+ .png); summary lines on stdout.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DURATION=${1:-20}
+OUT=${2:-out/loadtest}
+PORT=${PORT:-8765}
+PY=${PY:-.venv/bin/python}
+export OMP_NUM_THREADS=1
+
+for B in ${BATCH_SIZES:-1 16}; do
+    mkdir -p "$OUT"
+    DS3D_MAX_BATCH_SIZE=$B DS3D_PORT=$PORT $PY -m service >"$OUT/server_b$B.log" 2>&1 &
+    SERVER=$!
+    trap 'kill $SERVER 2>/dev/null || true' EXIT
+    for _ in $(seq 120); do
+        curl -sf "http://127.0.0.1:$PORT/readyz" >/dev/null && break
+        sleep 1
+    done
+    for C in ${CONCURRENCIES:-1 4 16 64}; do
+        $PY -m service.loadtest "http://127.0.0.1:$PORT" --mode closed --concurrency "$C" \
+            --duration "$DURATION" --out "$OUT" --name "lift_closed_c${C}_b${B}" --deadline 10 \
+            | $PY -c "import json,sys; d=json.load(sys.stdin); l=d['latency_ms_ok'] or {}; \
+print('b=$B c=$C ok/s=%.2f p50=%s p95=%s p99=%s %s' % (d['ok_rps'], \
+*[round(l[k]) if l else None for k in ('p50','p95','p99')], d['status_counts']))"
+    done
+    kill -TERM $SERVER
+    wait $SERVER || true
+done
