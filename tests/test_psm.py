@@ -197,7 +197,7 @@ def test_fit_recovers_known_mixture():
     freqs = np.array([0.5, 0.3, 0.2])
     offsets, _ = sample_mixture(rng, means, stds, freqs, 3000)
     joints = torch.tensor(poses_with_limb_offsets(offsets))[None]
-    mix = fit_pairwise_mixtures(joints, n_components=3, min_var=0.0)
+    mix = fit_pairwise_mixtures(joints, n_components=3, min_var=1e-6)
     for limb in range(len(LIMBS)):
         order = np.argsort(-mix.log_gamma[0, limb].numpy())  # most frequent first
         np.testing.assert_allclose(mix.mean[0, limb, order].numpy(), means, atol=0.3)
@@ -247,6 +247,8 @@ def test_fit_rejects_bad_input():
         fit_pairwise_mixtures(joints)
     with pytest.raises(InvalidPose):
         fit_pairwise_mixtures(torch.zeros(10, NUM_JOINTS, 2))
+    with pytest.raises(ValueError):
+        fit_pairwise_mixtures(torch.zeros(1, 10, NUM_JOINTS, 2), min_var=0.0)
 
 
 def test_fit_is_deterministic_and_batch_equals_items():
