@@ -21,16 +21,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-wait-ms", type=float, help="DS3D_MAX_WAIT_MS")
     parser.add_argument("--torch-threads", type=int, help="DS3D_TORCH_THREADS")
     args = parser.parse_args(argv)
-    overrides = {k: v for k, v in vars(args).items() if v is not None}
+    from service.settings import Settings
+
+    settings = Settings(**{k: v for k, v in vars(args).items() if v is not None})
     # Before torch loads: keep OpenMP to the configured threads too.
-    os.environ.setdefault("OMP_NUM_THREADS", str(overrides.get("torch_threads", 1)))
+    os.environ.setdefault("OMP_NUM_THREADS", str(settings.torch_threads))
 
     import uvicorn
 
     from service.app import create_app
-    from service.settings import Settings
 
-    settings = Settings(**overrides)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s %(message)s")
     uvicorn.run(
         create_app(settings),
