@@ -90,7 +90,7 @@ def test_max_convolve_shared_mixture_equals_per_map():
 
 
 def planted_problem(rng, n_poses=400, jitter=1.5):
-    """Mixtures fit on jittered copies of STANDING, and unaries with peaks at the pose."""
+    """Mixtures (C = 3) fit on jittered copies of STANDING."""
     poses = STANDING[None] + rng.normal(0, jitter, (n_poses, NUM_JOINTS, 2))
     mixtures = fit_pairwise_mixtures(torch.tensor(poses)[None], n_components=3, min_var=1.0)
     return mixtures
@@ -140,7 +140,7 @@ def test_infer_score_is_log_posterior_of_the_map_pose():
     torch.testing.assert_close(result.joint_scores, unary_at_map)
     posterior = unary_at_map.sum(1) + mixtures.log_potentials(result.joints_2d.double()).sum(1)
     torch.testing.assert_close(result.score, posterior.to(result.score.dtype))
-    # the MAP beats every other pose: try random ones and single-joint moves
+    # the MAP beats other poses: move one joint at a time to a random cell
     for _ in range(200):
         cells = result.cells.clone()
         j = int(rng.integers(NUM_JOINTS))

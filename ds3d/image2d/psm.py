@@ -201,6 +201,7 @@ def _weighted_kmeans(
 def fit_pairwise_mixtures(
     joints_2d: Tensor,
     weights: Tensor | None = None,
+    *,
     visible: Tensor | None = None,
     n_components: int = 15,
     iterations: int = 20,
@@ -281,6 +282,7 @@ def infer(
     unaries: Tensor,
     mixtures: PairwiseMixtures,
     stride: float | Tensor = 1.0,
+    *,
     chunk_elements: int = CHUNK_ELEMENTS,
 ) -> PsmResult:
     """MAP pose of the PSM (eqt:ps) by exact max-product over the tree, batched.
