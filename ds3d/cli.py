@@ -12,6 +12,7 @@ import sys
 
 COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.mocap.commands",
+    "ds3d.image2d.commands",
 )
 
 

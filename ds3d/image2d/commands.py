@@ -1,0 +1,175 @@
+"""`ds3d train-2d`, `ds3d eval lsp`, `ds3d bench 2d`: the 2D stage's command line."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ds3d.data.lsp import PoseAnnotations, load_lsp
+from ds3d.evaluation.metrics import pck, pixel_error
+from ds3d.image2d.estimator import EstimatorParams, PoseEstimator2D, read_manifest
+from ds3d.image2d.train import TrainConfig, train, training_annotations, write_manifest
+from ds3d.image_io import read_image
+from ds3d.paths import MODELS_DIR, data_root
+from ds3d.skeleton import JOINT_NAMES
+
+DEFAULT_MODEL = MODELS_DIR / "image2d"
+
+# `--small`: a few dozen images and a handful of shallow trees; trains in well under a minute
+# and exists to exercise the whole path (tests, CI), not to be accurate.
+SMALL = {
+    "max_images": 40,
+    "trees": (3, 3),
+    "images_per_tree": 20,
+    "pool_size": 128,
+    "max_depth": 10,
+    "min_samples_leaf": 5,
+    "psm_iterations": 10,
+}
+
+
+def register(commands, evals, benches) -> None:
+    p = commands.add_parser("train-2d", help="train the 2D pose model (forest cascade + PSM)")
+    p.add_argument("--out", type=Path, default=DEFAULT_MODEL)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    p.set_defaults(func=cmd_train)
+
+    e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
+    e.add_argument("--model", type=Path, default=DEFAULT_MODEL)
+    e.add_argument("--limit", type=int, default=None, help="first N test images only")
+    e.add_argument("--batch", type=int, default=16)
+    e.add_argument("--threads", type=int, default=1)
+    e.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    e.add_argument(
+        "--write-manifest", action="store_true", help="record the metrics in the model manifest"
+    )
+    e.set_defaults(func=cmd_eval_lsp)
+
+    b = benches.add_parser("2d", help="images/s of the 2D stage, time per step")
+    b.add_argument("--model", type=Path, default=DEFAULT_MODEL)
+    b.add_argument("--threads", type=int, default=1)
+    b.add_argument("--repeats", type=int, default=3)
+    b.set_defaults(func=cmd_bench)
+
+
+def cmd_train(args) -> int:
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    cfg = TrainConfig(seed=args.seed, **(SMALL if args.small else {}))
+    params = EstimatorParams()
+    evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
+    manifest = train(cfg, params, args.out, evaluate=evaluate)
+    print(json.dumps({k: manifest[k] for k in ("train_seconds_1_thread", "metrics")}, indent=2))
+    return 0
+
+
+def evaluate_validation(model_dir: Path, cfg: TrainConfig) -> dict:
+    _, val = training_annotations(cfg)
+    return evaluate(PoseEstimator2D.load(model_dir), val)
+
+
+def _argmax_joints(est: PoseEstimator2D, images: list[np.ndarray]) -> torch.Tensor:
+    """Forest alone: per joint, the best cell of the unaries at the base scale. (B, 14, 2) px."""
+    res = est.estimate(images, scales=[1.0])
+    b, j, _, w = res.unaries.shape
+    best = res.unaries.reshape(b, j, -1).argmax(-1)
+    uv1 = torch.stack([best % w, best // w, torch.ones_like(best)], -1).float()
+    return torch.einsum("bij,bkj->bki", res.map_to_image, uv1)
+
+
+def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dict:
+    """PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and mean, and mean
+    pixel error, over all 14 joints of every image (LSP's protocol, occluded joints included),
+    for the full model (pyramid + PSM) and for the forest argmax alone at the base scale."""
+    preds, argmax = [], []
+    t0 = time.perf_counter()
+    for i in range(0, len(ann), batch):
+        images = [read_image(p) for p in ann.image_paths[i : i + batch]]
+        preds.append(est.estimate(images).joints_2d)
+        argmax.append(_argmax_joints(est, images))
+    seconds = time.perf_counter() - t0
+    gt = torch.from_numpy(ann.joints)
+    out = {"n_images": len(ann), "seconds": round(seconds, 1)}
+    for name, pred in (("psm", torch.cat(preds)), ("forest_argmax", torch.cat(argmax))):
+        per_joint = pck(pred, gt)
+        out[name] = {
+            "pck@0.2": round(float(per_joint.mean()), 4),
+            "pck@0.2_per_joint": {
+                n: round(float(v), 4) for n, v in zip(JOINT_NAMES, per_joint, strict=True)
+            },
+            "mean_pixel_error": round(float(pixel_error(pred, gt).mean()), 2),
+        }
+    return out
+
+
+def cmd_eval_lsp(args) -> int:
+    torch.set_num_threads(args.threads)
+    ann = load_lsp(split="test")
+    if args.limit is not None:
+        ann = ann.subset(range(min(args.limit, len(ann))))
+    result = {"dataset": "LSP test im1001-im2000", "model": str(args.model)}
+    result |= evaluate(PoseEstimator2D.load(args.model), ann, batch=args.batch)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    if args.write_manifest:
+        manifest = read_manifest(args.model)
+        key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
+        manifest.setdefault("metrics", {})[key] = result
+        write_manifest(args.model, manifest)
+    return 0
+
+
+def _bench_images(size: tuple[int, int] | None, n: int) -> list[np.ndarray]:
+    """n LSP test images (resized to size = (w, h) if given); random noise without the data."""
+    if (data_root() / "lsp" / "joints.mat").is_file():
+        images = [read_image(p) for p in load_lsp(split="test").image_paths[:n]]
+    else:  # no dataset here: noise of LSP's typical size
+        rng = np.random.default_rng(0)
+        images = [rng.integers(0, 256, (175, 110, 3), dtype=np.uint8) for _ in range(n)]
+    if size is not None:
+        images = [cv2.resize(im, size, interpolation=cv2.INTER_LINEAR) for im in images]
+    return images
+
+
+def cmd_bench(args) -> int:
+    torch.set_num_threads(args.threads)
+    est = PoseEstimator2D.load(args.model)
+    rows = []
+    for label, size in (("lsp-sized", None), ("640x480", (640, 480))):
+        images = _bench_images(size, 16)
+        for batch in (1, 16):
+            est.estimate(images[:batch])  # warm-up
+            steps = {"features": 0.0, "traversal": 0.0, "psm": 0.0, "total": 0.0}
+            for _ in range(args.repeats):
+                res = est.estimate(images[:batch])
+                for k in steps:
+                    steps[k] += res.timings[k]
+            n = args.repeats * batch
+            rows.append(
+                {
+                    "image": label,
+                    "shape": list(images[0].shape[:2]),
+                    "batch": batch,
+                    "images_per_s": round(n / steps["total"], 2),
+                    "ms_per_image": {k: round(1000 * v / n, 1) for k, v in steps.items()},
+                }
+            )
+            print(json.dumps(rows[-1]), flush=True)
+    print(
+        json.dumps({"threads": args.threads, "scales": est.scales(), "stride": est.params.stride}),
+        file=sys.stderr,
+    )
+    return 0

@@ -1,0 +1,361 @@
+"""Image -> 2D pose: scale normalisation, a 6-scale pyramid, a two-layer forest cascade for the
+unaries, and the pictorial structure model (ds3d.image2d.psm) on each scale.
+
+Working scale. Training rescales every image so that the person's extent (the longer side of
+the box around its joints) is `canonical_extent` pixels; the PSM's offsets are learnt at that
+scale. At inference an image (or a person box) is first resized to a base scale where a person
+filling it would have that extent, then the pyramid tries `n_scales` scales
+`start * factor**k` around it and keeps, per image, the scale whose PSM score is best.
+
+Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background from image
+channels. Layer 2 (auto-context) splits on the image channels AND on layer 1's joint probability
+maps, read at offsets, which lets it use where the other joints probably are. Unaries are
+log(box-blurred layer-2 probabilities).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ds3d.errors import DataFormatError, InvalidImage
+from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
+from ds3d.image2d.forest import Forest, predict_proba
+from ds3d.image2d.psm import PairwiseMixtures, infer
+from ds3d.paths import MODELS_DIR
+from ds3d.skeleton import NUM_JOINTS
+
+LOG_EPS = 1e-4  # floor of the probabilities before the log: keeps unaries finite
+
+
+@dataclass
+class EstimatorParams:
+    """Algorithm parameters of the 2D stage (stored in the model's manifest.json)."""
+
+    canonical_extent: float = 100.0  # person extent in px at the working scale
+    image_to_extent: float = 1.35  # a full image without a box: its longer side / person extent
+    box_to_extent: float = 1.0  # a person box: its longer side / person extent
+    box_margin: float = 0.35  # context kept around a box, fraction of the extent per side
+    stride: int = 3  # px between evaluated pixels (one unary cell)
+    context_blur: int = 1  # box radius (cells) on layer-1 maps before layer 2 reads them
+    unary_blur: int = 1  # box radius (cells) on the final maps before the log
+    unary_weight: float = 1.0  # the PSM sees unary_weight * unaries (relative to the binaries)
+    n_scales: int = 6
+    scale_factor: float = 0.85
+    scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
+
+
+def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W, 3) uint8 -> (round(H * scale), round(W * scale), 3) uint8, area-averaged when
+    shrinking. Returns the exact per-axis factors implicitly via the output shape."""
+    h, w = image.shape[:2]
+    nh, nw = max(round(h * scale), 1), max(round(w * scale), 1)
+    if (nh, nw) == (h, w):
+        return image
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return cv2.resize(image, (nw, nh), interpolation=interp)
+
+
+def grid_positions(height: int, width: int, stride: int) -> tuple[torch.Tensor, int, int]:
+    """Pixels evaluated on a (height, width) image: (P, 2) int64 (y, x) = (i * stride, j * stride)
+    for a (gh, gw) grid, P = gh * gw (row-major). Returns (positions, gh, gw)."""
+    ys = torch.arange(0, height, stride)
+    xs = torch.arange(0, width, stride)
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([yy.reshape(-1), xx.reshape(-1)], dim=1), len(ys), len(xs)
+
+
+def context_channels(probs: torch.Tensor, stride: int, height: int, width: int) -> torch.Tensor:
+    """Layer-1 joint maps on the grid -> full-resolution channels by nearest grid cell.
+
+    probs: (B, 14, gh, gw) -> (B, 14, height, width) float32.
+    """
+    gh, gw = probs.shape[-2:]
+    iy = torch.div(torch.arange(height) + stride // 2, stride, rounding_mode="floor").clamp_max(
+        gh - 1
+    )
+    ix = torch.div(torch.arange(width) + stride // 2, stride, rounding_mode="floor").clamp_max(
+        gw - 1
+    )
+    return probs[:, :, iy[:, None], ix[None, :]].contiguous()
+
+
+def cascade_probs(
+    layers: list[Forest],
+    channels: torch.Tensor,
+    params: EstimatorParams,
+    sizes: list[tuple[int, int]] | None = None,
+) -> list[torch.Tensor]:
+    """Run the forest cascade on a batch.
+
+    channels: (B, 12, H, W) from image_channels, zero outside each image;
+    sizes: None (every image fills H x W) or B (h, w) sizes of the images in a zero-padded
+    batch: context maps are zeroed outside each image, as around a single image in training
+    -> one (B, 15, gh, gw) class-probability map per layer (joints 0-13, background 14), on the
+    grid of grid_positions(H, W, stride).
+    """
+    b, _, h, w = channels.shape
+    positions, gh, gw = grid_positions(h, w, params.stride)
+    outputs = []
+    stack = channels
+    for i, forest in enumerate(layers):
+        if i > 0:
+            prev = outputs[-1][:, :NUM_JOINTS]
+            if sizes is None:
+                ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w)
+            else:
+                prev = prev * valid_cells(sizes, h, w, params.stride)
+                ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w)
+                ctx = ctx * valid_cells(sizes, h, w, 1)
+            stack = torch.cat([channels, ctx], dim=1)
+        probs = predict_proba(forest, pad_channels(stack, forest.radius), positions)
+        outputs.append(probs.permute(0, 2, 1).reshape(b, -1, gh, gw))
+    return outputs
+
+
+def valid_cells(sizes: list[tuple[int, int]], height: int, width: int, stride: int) -> torch.Tensor:
+    """(B, 1, gh, gw) bool: the cells of the grid of grid_positions(height, width, stride) that
+    fall inside each image of a zero-padded batch; sizes: B (h, w)."""
+    ys = torch.arange(0, height, stride)
+    xs = torch.arange(0, width, stride)
+    rows = torch.stack([ys < h for h, _ in sizes])  # (B, gh)
+    cols = torch.stack([xs < w for _, w in sizes])  # (B, gw)
+    return (rows[:, :, None] & cols[:, None, :])[:, None]
+
+
+def unaries_from_probs(probs: torch.Tensor, blur: int) -> torch.Tensor:
+    """(B, 15, gh, gw) class probabilities -> (B, 14, gh, gw) log-prob unaries (blurred)."""
+    return torch.log(box_mean(probs[:, :NUM_JOINTS], blur) + LOG_EPS)
+
+
+@dataclass
+class Estimate2D:
+    """Result of PoseEstimator2D.estimate for B images.
+
+    joints_2d: (B, 14, 2) float32, pixels of the input image.
+    joint_scores: (B, 14) float32, the PSM's per-joint max-marginal contribution.
+    score: (B,) float32, the PSM score of the chosen scale.
+    unaries: (B, 14, h, w) float32 log-probabilities of the chosen scale, padded to a common
+        (h, w) with log(LOG_EPS).
+    map_to_image: (B, 2, 3) float32 affine map from unary cell (u = column, v = row, 1) to image
+        pixels (x, y): image_xy = map_to_image @ (u, v, 1).
+    scale: (B,) float32, the working scale chosen (working px per image px, mean of x and y).
+    timings: seconds per step (features, traversal, psm, total).
+    """
+
+    joints_2d: torch.Tensor
+    joint_scores: torch.Tensor
+    score: torch.Tensor
+    unaries: torch.Tensor
+    map_to_image: torch.Tensor
+    scale: torch.Tensor
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def sample_unaries(self, points: torch.Tensor) -> torch.Tensor:
+        """Unary log-probs at image points, bilinear on the unary grid.
+
+        points: (B, K, 14, 2) float32 image pixels -> (B, K, 14) float32; points outside the
+        map get log(LOG_EPS).
+        """
+        b, k = points.shape[:2]
+        a = self.map_to_image[:, :, :2]  # (B, 2, 2), diagonal
+        t = self.map_to_image[:, :, 2]  # (B, 2)
+        uv = (points - t[:, None, None, :]) / torch.diagonal(a, dim1=1, dim2=2)[:, None, None, :]
+        h, w = self.unaries.shape[-2:]
+        # grid_sample wants (x, y) in [-1, 1] with align_corners=True: -1 = cell 0.
+        norm = torch.stack([uv[..., 0] / max(w - 1, 1), uv[..., 1] / max(h - 1, 1)], -1) * 2 - 1
+        # One sampling grid per joint: treat joints as the batch of (1-channel) maps.
+        maps = self.unaries.reshape(b * NUM_JOINTS, 1, h, w)
+        grid = norm.permute(0, 2, 1, 3).reshape(b * NUM_JOINTS, k, 1, 2)
+        out = torch.nn.functional.grid_sample(
+            maps - np.log(LOG_EPS), grid, mode="bilinear", padding_mode="zeros", align_corners=True
+        )  # shifted so that outside (zero padding) means log(LOG_EPS)
+        return (out.reshape(b, NUM_JOINTS, k).permute(0, 2, 1) + np.log(LOG_EPS)).contiguous()
+
+
+def save_forest(forest: Forest, path: Path) -> None:
+    torch.save(forest.to_dict(), path)
+
+
+def load_forest(path: Path) -> Forest:
+    try:
+        return Forest.from_dict(torch.load(path, weights_only=True))
+    except (OSError, KeyError, RuntimeError) as exc:
+        raise DataFormatError(f"cannot load forest {path}: {exc}") from exc
+
+
+def read_manifest(model_dir: Path) -> dict:
+    path = Path(model_dir) / "manifest.json"
+    if not path.is_file():
+        raise DataFormatError(f"no manifest.json in {model_dir}")
+    return json.loads(path.read_text())
+
+
+@dataclass
+class _Crop:
+    """Where one image's working region comes from: its top-left corner (x0, y0) in image px
+    and the base scale (working px per image px)."""
+
+    image: np.ndarray
+    x0: int
+    y0: int
+    base: float
+
+
+def _crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[_Crop]:
+    """Base scale per image: from the person box if given, else from the image size."""
+    out = []
+    for i, image in enumerate(images):
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InvalidImage(
+                f"image {i} must be (H, W, 3) uint8, got {image.shape} {image.dtype}"
+            )
+        box = None if bboxes is None else bboxes[i]
+        if box is None:
+            extent = max(image.shape[:2]) / params.image_to_extent
+            out.append(_Crop(image, 0, 0, params.canonical_extent / extent))
+            continue
+        x0, y0, x1, y1 = (float(v) for v in box)
+        if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
+            raise ValueError(f"bbox {i} must be finite (x0, y0, x1, y1) with x1 > x0, y1 > y0")
+        extent = max(x1 - x0, y1 - y0) / params.box_to_extent
+        margin = params.box_margin * extent
+        h, w = image.shape[:2]
+        cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
+        cx1, cy1 = min(int(np.ceil(x1 + margin)), w), min(int(np.ceil(y1 + margin)), h)
+        if cx1 <= cx0 or cy1 <= cy0:
+            raise ValueError(f"bbox {i} lies outside its image")
+        crop = np.ascontiguousarray(image[cy0:cy1, cx0:cx1])
+        out.append(_Crop(crop, cx0, cy0, params.canonical_extent / extent))
+    return out
+
+
+class PoseEstimator2D:
+    """Image -> 2D pose with the trained cascade and PSM of a model directory.
+
+    Load with PoseEstimator2D.load(model_dir) (default: models/image2d); the directory holds
+    manifest.json (params, layer files), forest1.pt, forest2.pt, psm.pt.
+    """
+
+    def __init__(self, layers: list[Forest], mixtures: PairwiseMixtures, params: EstimatorParams):
+        self.layers = layers
+        self.mixtures = mixtures
+        self.params = params
+
+    @classmethod
+    def load(cls, model_dir: Path | str | None = None) -> PoseEstimator2D:
+        model_dir = Path(model_dir) if model_dir is not None else MODELS_DIR / "image2d"
+        manifest = read_manifest(model_dir)
+        try:
+            params = EstimatorParams(**manifest["params"])
+            layers = [load_forest(model_dir / name) for name in manifest["layers"]]
+            state = torch.load(model_dir / manifest["psm"], weights_only=True)
+            mixtures = PairwiseMixtures.from_state_dict(state)
+        except (KeyError, TypeError, OSError, RuntimeError) as exc:
+            raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
+        return cls(layers, mixtures, params)
+
+    def scales(self) -> list[float]:
+        p = self.params
+        return [p.scale_start * p.scale_factor**k for k in range(p.n_scales)]
+
+    def estimate(
+        self,
+        images: list[np.ndarray],
+        bboxes: list | None = None,
+        scales: list[float] | None = None,
+    ) -> Estimate2D:
+        """2D poses of a batch of images.
+
+        images: B arrays (H_i, W_i, 3) uint8 RGB; bboxes: None or B entries, each None or a
+        person box (x0, y0, x1, y1) in image pixels (the region around it is cropped first).
+        scales: pyramid scales relative to the base scale (default: the model's 6).
+        Returns Estimate2D (joints in each input image's pixels).
+        """
+        if len(images) == 0:
+            raise ValueError("no images")
+        if bboxes is not None and len(bboxes) != len(images):
+            raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
+        p = self.params
+        t_start = now()
+        timings = {"features": 0.0, "traversal": 0.0, "psm": 0.0}
+        crops = _crops(images, bboxes, p)
+        b = len(crops)
+        best = None
+        for rel in scales if scales is not None else self.scales():
+            t0 = now()
+            resized = [resize_image(c.image, c.base * rel) for c in crops]
+            hmax = max(r.shape[0] for r in resized)
+            wmax = max(r.shape[1] for r in resized)
+            # Channels per image, then zero-padded into the batch: exactly what a single image
+            # sees in training (zero outside the image), whatever the batch.
+            channels = torch.zeros(b, NUM_IMAGE_CHANNELS, hmax, wmax)
+            for i, r in enumerate(resized):
+                channels[i, :, : r.shape[0], : r.shape[1]] = image_channels(
+                    torch.from_numpy(r)[None]
+                )[0]
+            sizes = [r.shape[:2] for r in resized]
+            valid = valid_cells(sizes, hmax, wmax, p.stride)  # (B, 1, gh, gw)
+            t1 = now()
+            probs = cascade_probs(self.layers, channels, p, sizes)[-1]
+            unaries = unaries_from_probs(probs * valid, p.unary_blur)
+            unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
+            t2 = now()
+            res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
+            t3 = now()
+            timings["features"] += t1 - t0
+            timings["traversal"] += t2 - t1
+            timings["psm"] += t3 - t2
+            sy = torch.tensor(
+                [r.shape[0] / c.image.shape[0] for r, c in zip(resized, crops, strict=True)]
+            )
+            sx = torch.tensor(
+                [r.shape[1] / c.image.shape[1] for r, c in zip(resized, crops, strict=True)]
+            )
+            off = torch.tensor([[c.x0, c.y0] for c in crops], dtype=torch.float32)
+            fac = torch.stack([sx, sy], 1).float()  # (B, 2) working px per image px
+            joints = (res.joints_2d + 0.5) / fac[:, None] - 0.5 + off[:, None]
+            affine = torch.zeros(b, 2, 3)
+            affine[:, 0, 0] = p.stride / fac[:, 0]
+            affine[:, 1, 1] = p.stride / fac[:, 1]
+            affine[:, :, 2] = 0.5 / fac - 0.5 + off
+            cand = Estimate2D(
+                joints, res.joint_scores.float(), res.score.float(), unaries, affine, fac.mean(1)
+            )
+            best = cand if best is None else _keep_better(best, cand)
+        best.timings = {k: round(v, 6) for k, v in timings.items()}
+        best.timings["total"] = round(now() - t_start, 6)
+        return best
+
+
+def _pad_maps(maps: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Pad (B, 14, h0, w0) log-prob maps to (B, 14, h, w) with log(LOG_EPS)."""
+    out = torch.full((*maps.shape[:2], h, w), float(np.log(LOG_EPS)), dtype=maps.dtype)
+    out[:, :, : maps.shape[2], : maps.shape[3]] = maps
+    return out
+
+
+def _keep_better(a: Estimate2D, b: Estimate2D) -> Estimate2D:
+    """Per image, the estimate with the higher PSM score."""
+    take_b = b.score > a.score
+    h = max(a.unaries.shape[2], b.unaries.shape[2])
+    w = max(a.unaries.shape[3], b.unaries.shape[3])
+    sel = take_b.view(-1, 1, 1, 1)
+    return Estimate2D(
+        torch.where(take_b.view(-1, 1, 1), b.joints_2d, a.joints_2d),
+        torch.where(take_b.view(-1, 1), b.joint_scores, a.joint_scores),
+        torch.where(take_b, b.score, a.score),
+        torch.where(sel, _pad_maps(b.unaries, h, w), _pad_maps(a.unaries, h, w)),
+        torch.where(take_b.view(-1, 1, 1), b.map_to_image, a.map_to_image),
+        torch.where(take_b, b.scale, a.scale),
+    )
+
+
+def now() -> float:
+    return time.perf_counter()

@@ -1,0 +1,211 @@
+"""Random forests on pixel-comparison features: grown with scikit-learn, run in torch.
+
+Each tree is grown by scikit-learn on a matrix of pixel-comparison feature values (one column per
+feature of a ComparisonPool), then exported to flat tensors. Inference is a tensorised traversal:
+every pixel of every image walks every tree at once, one step (a handful of gathers) per depth
+level, with no Python loop over pixels or nodes.
+
+Export layout (all trees concatenated, N nodes, L leaves; compact dtypes keep the model small):
+    channel:   (N,) uint8    the node's comparison channel (leaves: 0)
+    dy1, dx1, dy2, dx2: (N,) int8  its offsets in pixels (leaves: 0)
+    use2:      (N,) uint8    0 or 1
+    threshold: (N,) float32  go left iff value <= threshold; leaves +inf, so they stay put
+    left:      (N,) int32    left child; the right child is always left + 1; leaves point to
+                             themselves (renumbered breadth-first so siblings are adjacent)
+    leaf:      (N,) int32    row in leaf_values for leaves, 0 for internal nodes
+    leaf_values: (L, K) float16  class distribution of each leaf
+    roots:     (T,) int64
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from sklearn.tree import DecisionTreeClassifier
+
+from ds3d.image2d.features import ComparisonPool, comparison_offsets
+
+
+@dataclass
+class Forest:
+    """A forest exported to tensors; see the module docstring for the layout."""
+
+    channel: torch.Tensor
+    dy1: torch.Tensor
+    dx1: torch.Tensor
+    dy2: torch.Tensor
+    dx2: torch.Tensor
+    use2: torch.Tensor
+    threshold: torch.Tensor
+    left: torch.Tensor
+    leaf: torch.Tensor
+    leaf_values: torch.Tensor
+    roots: torch.Tensor
+    depth: int
+    radius: int
+    n_channels: int
+
+    @property
+    def n_trees(self) -> int:
+        return len(self.roots)
+
+    @property
+    def n_classes(self) -> int:
+        return self.leaf_values.shape[1]
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Forest:
+        return cls(**{f.name: d[f.name] for f in fields(cls)})
+
+
+def float32_threshold(threshold: np.ndarray) -> np.ndarray:
+    """The largest float32 t32 <= t, so that for float32 x: x <= t32 iff x <= t (float64).
+
+    scikit-learn compares float32 features with float64 thresholds; rounding the threshold down
+    keeps the float32 traversal's branches identical.
+    """
+    t32 = threshold.astype(np.float32)
+    above = t32.astype(np.float64) > threshold
+    t32[above] = np.nextafter(t32[above], np.float32(-np.inf))
+    return t32
+
+
+def export_tree(model: DecisionTreeClassifier, pool: ComparisonPool, n_classes: int) -> dict:
+    """One fitted scikit-learn tree -> numpy arrays in the export layout (root = node 0).
+
+    The tree's classes must be a subset of range(n_classes); its leaf distributions are spread
+    onto all n_classes columns.
+    """
+    tree = model.tree_
+    order = [0]  # breadth-first, pushing both children of a split together
+    new_id = {0: 0}
+    queue = deque([0])
+    while queue:
+        node = queue.popleft()
+        if tree.children_left[node] >= 0:
+            for child in (tree.children_left[node], tree.children_right[node]):
+                new_id[child] = len(order)
+                order.append(child)
+                queue.append(child)
+    order = np.asarray(order)
+    n = len(order)
+    is_leaf = tree.children_left[order] < 0
+    feat = np.where(is_leaf, 0, tree.feature[order])
+    if np.abs(np.concatenate([pool.offset1, pool.offset2])).max() > 127 or pool.channel.max() > 255:
+        raise ValueError("offsets must fit int8 and channels uint8")
+    out = {
+        "channel": np.where(is_leaf, 0, pool.channel[feat]).astype(np.uint8),
+        "dy1": np.where(is_leaf, 0, pool.offset1[feat, 0]).astype(np.int8),
+        "dx1": np.where(is_leaf, 0, pool.offset1[feat, 1]).astype(np.int8),
+        "dy2": np.where(is_leaf, 0, pool.offset2[feat, 0]).astype(np.int8),
+        "dx2": np.where(is_leaf, 0, pool.offset2[feat, 1]).astype(np.int8),
+        "use2": np.where(is_leaf, 0, pool.use2[feat]).astype(np.uint8),
+        "threshold": np.where(
+            is_leaf, np.float32(np.inf), float32_threshold(tree.threshold[order])
+        ).astype(np.float32),
+    }
+    left = np.arange(n, dtype=np.int32)
+    internal = np.flatnonzero(~is_leaf)
+    left[internal] = [new_id[c] for c in tree.children_left[order[internal]]]
+    out["left"] = left
+    leaf_rows = np.flatnonzero(is_leaf)
+    out["leaf"] = np.zeros(n, dtype=np.int32)
+    out["leaf"][leaf_rows] = np.arange(len(leaf_rows))
+    values = tree.value[order[leaf_rows], 0, :]
+    values = values / np.maximum(values.sum(axis=1, keepdims=True), 1e-12)
+    dist = np.zeros((len(leaf_rows), n_classes), dtype=np.float32)
+    dist[:, model.classes_.astype(np.int64)] = values
+    out["leaf_values"] = dist
+    out["depth"] = int(tree.max_depth)
+    out["source_node"] = order  # scikit-learn's id of each exported node (for checks)
+    return out
+
+
+def stack_trees(trees: list[dict], radius: int, n_channels: int) -> Forest:
+    """Concatenate exported trees into one Forest, shifting node and leaf indices."""
+    node_off = np.cumsum([0] + [len(t["left"]) for t in trees])
+    leaf_off = np.cumsum([0] + [len(t["leaf_values"]) for t in trees])
+    cat = {
+        k: np.concatenate([t[k] for t in trees])
+        for k in ("channel", "dy1", "dx1", "dy2", "dx2", "use2", "threshold")
+    }
+    left = np.concatenate([t["left"] + o for t, o in zip(trees, node_off[:-1], strict=True)])
+    leaf = np.concatenate([t["leaf"] + o for t, o in zip(trees, leaf_off[:-1], strict=True)])
+    return Forest(
+        **{k: torch.from_numpy(v) for k, v in cat.items()},
+        left=torch.from_numpy(left.astype(np.int32)),
+        leaf=torch.from_numpy(leaf.astype(np.int32)),
+        leaf_values=torch.from_numpy(np.concatenate([t["leaf_values"] for t in trees])).half(),
+        roots=torch.from_numpy(node_off[:-1].astype(np.int64)),
+        depth=max(t["depth"] for t in trees),
+        radius=radius,
+        n_channels=n_channels,
+    )
+
+
+def fit_tree(
+    features: np.ndarray,
+    labels: np.ndarray,
+    pool: ComparisonPool,
+    n_classes: int,
+    seed: int,
+    max_depth: int = 20,
+    min_samples_leaf: int = 10,
+    max_features: int | str = "sqrt",
+    splitter: str = "best",
+) -> dict:
+    """Grow one tree on (n, F) float32 feature values and (n,) int labels; return it exported."""
+    model = DecisionTreeClassifier(
+        splitter=splitter,
+        max_depth=max_depth,
+        min_samples_leaf=min_samples_leaf,
+        max_features=max_features,
+        random_state=seed,
+    )
+    model.fit(features, labels)
+    return export_tree(model, pool, n_classes)
+
+
+def traverse(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    """Leaf node reached by every pixel in every tree.
+
+    padded: (B, C + 1, H + 2r, W + 2r) float32 from features.pad_channels(channels,
+    forest.radius); positions: (P, 2) int64 (y, x) pixels in the UNPADDED image, the same for
+    the whole batch -> (B, T, P) int64 node ids (leaves).
+
+    One step per depth level for all B x T x P walkers: one gather of the node rows, two gathers
+    of channel values, a compare. int32 indices halve the memory traffic of the gathers.
+    """
+    b, c1, hp, wp = padded.shape
+    if b * c1 * hp * wp >= 2**31:
+        raise ValueError("batch too large for int32 indexing; split it")
+    r = forest.radius
+    flat = padded.reshape(-1)
+    base1, base2 = comparison_offsets(
+        forest.channel, forest.dy1, forest.dx1, forest.dy2, forest.dx2, forest.use2, (c1, hp, wp)
+    )
+    # One int32 row per node: both reads, the left child, the threshold's bits.
+    table = torch.stack(
+        [base1.int(), base2.int(), forest.left.int(), forest.threshold.view(torch.int32)], dim=1
+    )
+    pix = (positions[:, 0] + r) * wp + positions[:, 1] + r  # (P,)
+    start = (torch.arange(b) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(1, 1, -1)
+    start = start.expand(b, forest.n_trees, -1).reshape(-1).int()
+    node = forest.roots.view(1, -1, 1).expand(b, -1, len(pix)).reshape(-1).int()
+    for _ in range(forest.depth):
+        row = table.index_select(0, node)
+        v = flat.index_select(0, start + row[:, 0]) - flat.index_select(0, start + row[:, 1])
+        node = row[:, 2] + (v > row[:, 3].view(torch.float32))
+    return node.view(b, forest.n_trees, -1).long()
+
+
+def predict_proba(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    """Mean leaf class distribution over trees. Same inputs as traverse -> (B, P, K) float32."""
+    leaves = forest.leaf.long()[traverse(forest, padded, positions)]  # (B, T, P)
+    return forest.leaf_values[leaves].float().mean(dim=1)

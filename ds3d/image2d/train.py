@@ -1,0 +1,306 @@
+"""Training of the 2D stage: a two-layer forest cascade and the PSM's pairwise mixtures.
+
+Data: LSP train (im0001-im1000, minus the last `n_val` images, held out for validation) and
+LSPet (10,000). Every image is rescaled so that its person spans `canonical_extent` px
+(estimator.EstimatorParams). The images are split in two halves: layer 1 grows on one half;
+layer 2 grows on the other, reading layer 1's maps computed on images layer 1 never saw, so
+that its context features see maps as noisy as at test time (stacking without leakage).
+
+Each tree draws its own images (random horizontal flips), its own pixels (positives near the
+visible joints, background elsewhere) and its own pool of random pixel comparisons, and is
+grown by scikit-learn (ds3d.image2d.forest).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
+from ds3d.image2d.estimator import (
+    EstimatorParams,
+    box_mean,
+    cascade_probs,
+    context_channels,
+    resize_image,
+    save_forest,
+)
+from ds3d.image2d.features import (
+    NUM_IMAGE_CHANNELS,
+    evaluate_pool,
+    image_channels,
+    pad_channels,
+    sample_pool,
+)
+from ds3d.image2d.forest import Forest, fit_tree, stack_trees
+from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures
+from ds3d.image_io import read_image
+from ds3d.skeleton import FLIP, NUM_JOINTS
+
+log = logging.getLogger(__name__)
+
+BACKGROUND = NUM_JOINTS  # class id of background pixels
+
+
+@dataclass
+class TrainConfig:
+    """What `ds3d train-2d` trains; the defaults are the full model."""
+
+    seed: int = 0
+    n_val: int = 100  # last LSP train images held out for validation
+    max_images: int | None = None  # cap on training images (small mode)
+    trees: tuple[int, ...] = (16, 16)  # trees per cascade layer
+    images_per_tree: int = 2000
+    pool_size: int = 512  # random comparisons offered to each tree
+    radius: int = 40  # max offset of a comparison, px at the working scale
+    pos_per_joint: int = 8
+    pos_radius: float = 5.0  # px: pixels this close to a joint are that joint's positives
+    bg_per_image: int = 64
+    max_depth: int = 20
+    min_samples_leaf: int = 20
+    psm_components: int = 15
+    psm_iterations: int = 50
+
+
+@dataclass
+class TrainingImage:
+    """One image at the working scale. image: (H, W, 3) uint8; joints: (14, 2) px;
+    visible: (14,) bool."""
+
+    image: np.ndarray
+    joints: np.ndarray
+    visible: np.ndarray
+
+
+def person_extent(joints: np.ndarray, visible: np.ndarray) -> float:
+    """Longer side of the box around the visible joints (all joints if < 2 visible), px."""
+    pts = joints[visible] if visible.sum() >= 2 else joints
+    return float(max((pts.max(0) - pts.min(0)).max(), 1.0))
+
+
+def working_scale_joints(joints: np.ndarray, visible: np.ndarray, extent: float) -> np.ndarray:
+    """Scale factors that bring each person to the canonical extent. (N, 14, 2) -> (N,)."""
+    return np.array([extent / person_extent(j, v) for j, v in zip(joints, visible, strict=True)])
+
+
+def load_training_image(
+    ann: PoseAnnotations, index: int, flip: bool, params: EstimatorParams
+) -> TrainingImage:
+    joints = ann.joints[index].astype(np.float32)
+    visible = ann.visible[index].copy()
+    scale = params.canonical_extent / person_extent(joints, visible)
+    raw = read_image(ann.image_paths[index])
+    image = resize_image(raw, scale)
+    # Exact per-axis factors of the rounded output size; pixel centres map as x' = (x+.5)s-.5.
+    sy, sx = image.shape[0] / raw.shape[0], image.shape[1] / raw.shape[1]
+    joints = (joints + 0.5) * np.array([sx, sy], dtype=np.float32) - 0.5
+    if flip:
+        image = np.ascontiguousarray(image[:, ::-1])
+        joints[:, 0] = image.shape[1] - 1 - joints[:, 0]
+        joints, visible = joints[list(FLIP)], visible[list(FLIP)]
+    return TrainingImage(image, joints, visible)
+
+
+def sample_pixels(
+    rng: np.random.Generator, sample: TrainingImage, cfg: TrainConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Training pixels of one image: (P, 2) int64 (y, x) and (P,) int64 labels (joint or 14).
+
+    Positives: pos_per_joint pixels uniform in a disc of pos_radius around each visible joint.
+    Background: bg_per_image uniform pixels farther than 1.5 pos_radius from every joint.
+    """
+    h, w = sample.image.shape[:2]
+    pos, lab = [], []
+    for j in np.flatnonzero(sample.visible):
+        angle = rng.random(cfg.pos_per_joint) * 2 * np.pi
+        r = np.sqrt(rng.random(cfg.pos_per_joint)) * cfg.pos_radius
+        y = np.round(sample.joints[j, 1] + r * np.sin(angle)).astype(np.int64)
+        x = np.round(sample.joints[j, 0] + r * np.cos(angle)).astype(np.int64)
+        ok = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        pos.append(np.stack([y[ok], x[ok]], 1))
+        lab.append(np.full(ok.sum(), j))
+    bg = np.stack([rng.integers(0, h, cfg.bg_per_image), rng.integers(0, w, cfg.bg_per_image)], 1)
+    # Occluded LSP joints are real positions: keep background away from every joint.
+    d = np.linalg.norm(bg[:, None, ::-1] - sample.joints[None], axis=-1)
+    far = d.min(1) > 1.5 * cfg.pos_radius
+    pos.append(bg[far])
+    lab.append(np.full(far.sum(), BACKGROUND))
+    return np.concatenate(pos).astype(np.int64), np.concatenate(lab).astype(np.int64)
+
+
+def stacked_channels(
+    sample: TrainingImage, context: torch.Tensor | None, params: EstimatorParams
+) -> torch.Tensor:
+    """(1, C, H, W) channels the layer reads: image channels, plus layer-1 context if given
+    (context: (1, 15, gh, gw) layer-1 probabilities on the stride grid)."""
+    ch = image_channels(torch.from_numpy(sample.image)[None])
+    if context is None:
+        return ch
+    h, w = sample.image.shape[:2]
+    ctx = box_mean(context[:, :NUM_JOINTS].float(), params.context_blur)
+    return torch.cat([ch, context_channels(ctx, params.stride, h, w)], dim=1)
+
+
+def grow_layer(
+    ann: PoseAnnotations,
+    items: list[tuple[int, bool]],
+    contexts: dict[tuple[int, bool], torch.Tensor] | None,
+    n_trees: int,
+    cfg: TrainConfig,
+    params: EstimatorParams,
+    rng: np.random.Generator,
+) -> Forest:
+    """Grow one cascade layer. items: (annotation index, flipped) pairs the layer may use;
+    contexts: layer-1 maps per item for a context layer, None for layer 1."""
+    n_ctx = NUM_JOINTS if contexts is not None else 0
+    trees = []
+    for t in range(n_trees):
+        t0 = time.perf_counter()
+        pool = sample_pool(rng, cfg.pool_size, cfg.radius, NUM_IMAGE_CHANNELS, n_ctx)
+        chosen = rng.choice(len(items), min(cfg.images_per_tree, len(items)), replace=False)
+        xs, ys = [], []
+        for k in chosen:
+            index, flip = items[k]
+            if contexts is None:
+                flip = bool(rng.random() < 0.5)
+            sample = load_training_image(ann, index, flip, params)
+            ctx = contexts[items[k]] if contexts is not None else None
+            padded = pad_channels(stacked_channels(sample, ctx, params), cfg.radius)[0]
+            positions, labels = sample_pixels(rng, sample, cfg)
+            xs.append(evaluate_pool(padded, cfg.radius, torch.from_numpy(positions), pool).numpy())
+            ys.append(labels)
+        t1 = time.perf_counter()
+        tree = fit_tree(
+            np.concatenate(xs),
+            np.concatenate(ys),
+            pool,
+            NUM_JOINTS + 1,
+            seed=int(rng.integers(2**31)),
+            max_depth=cfg.max_depth,
+            min_samples_leaf=cfg.min_samples_leaf,
+        )
+        trees.append(tree)
+        log.info(
+            "tree %d/%d: %d samples, %d nodes, depth %d, features %.1fs, fit %.1fs",
+            t + 1,
+            n_trees,
+            sum(len(y) for y in ys),
+            len(tree["left"]),
+            tree["depth"],
+            t1 - t0,
+            time.perf_counter() - t1,
+        )
+    return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS + n_ctx)
+
+
+def layer1_contexts(
+    ann: PoseAnnotations,
+    items: list[tuple[int, bool]],
+    layers: list[Forest],
+    params: EstimatorParams,
+) -> dict[tuple[int, bool], torch.Tensor]:
+    """The last layer's probabilities (1, 15, gh, gw) float16 per item at the working scale."""
+    out = {}
+    for item in items:
+        sample = load_training_image(ann, item[0], item[1], params)
+        ch = image_channels(torch.from_numpy(sample.image)[None])
+        out[item] = cascade_probs(layers, ch, params)[-1].half()
+    return out
+
+
+def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotations]:
+    """(train, val): LSP train minus its last n_val images + LSPet; val = those n_val images."""
+    lsp = load_lsp(split="train")
+    n_fit = len(lsp) - cfg.n_val
+    train = lsp.subset(range(n_fit)).concat(load_lspet())
+    val = lsp.subset(range(n_fit, len(lsp)))
+    if cfg.max_images is not None:
+        keep = np.random.default_rng(cfg.seed).choice(len(train), cfg.max_images, replace=False)
+        train = train.subset(np.sort(keep))
+    return train, val
+
+
+def psm_training_poses(ann: PoseAnnotations, params: EstimatorParams):
+    """Training poses at the working scale, with their mirror images: (N2, 14, 2), (N2, 14)."""
+    scale = working_scale_joints(ann.joints, ann.visible, params.canonical_extent)
+    joints = ann.joints * scale[:, None, None]
+    mirrored = joints[:, list(FLIP)] * np.array([-1.0, 1.0], dtype=np.float32)
+    visible = np.concatenate([ann.visible, ann.visible[:, list(FLIP)]])
+    return np.concatenate([joints, mirrored]).astype(np.float32), visible
+
+
+def fit_psm(ann: PoseAnnotations, cfg: TrainConfig, params: EstimatorParams) -> PairwiseMixtures:
+    """The PSM's binaries from the training poses at the working scale (and their mirrors)."""
+    joints, visible = psm_training_poses(ann, params)
+    return fit_pairwise_mixtures(
+        torch.from_numpy(joints)[None],
+        visible=torch.from_numpy(visible)[None],
+        n_components=cfg.psm_components,
+        iterations=cfg.psm_iterations,
+        seed=cfg.seed,
+    )
+
+
+def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=None) -> dict:
+    """Train the cascade and the PSM and write them with manifest.json to out_dir.
+
+    evaluate: None or a callable(out_dir) -> dict of metrics, stored in the manifest.
+    Returns the manifest dict.
+    """
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    train_ann, _ = training_annotations(cfg)
+    order = rng.permutation(len(train_ann))
+    n1 = len(order) // 2 if len(cfg.trees) > 1 else len(order)
+    items1 = [(int(i), False) for i in order[:n1]]
+    items2 = [(int(i), bool(rng.random() < 0.5)) for i in order[n1:]]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    layers = [grow_layer(train_ann, items1, None, cfg.trees[0], cfg, params, rng)]
+    timings = {"layer1": time.perf_counter() - t0}
+    for depth, n_trees in enumerate(cfg.trees[1:], start=2):
+        t1 = time.perf_counter()
+        contexts = layer1_contexts(train_ann, items2, layers, params)
+        log.info(
+            "layer-%d inputs of %d images: %.1fs", depth, len(items2), time.perf_counter() - t1
+        )
+        layers.append(grow_layer(train_ann, items2, contexts, n_trees, cfg, params, rng))
+        timings[f"layer{depth}"] = time.perf_counter() - t1
+    for i, forest in enumerate(layers):
+        save_forest(forest, out_dir / f"forest{i + 1}.pt")
+    t2 = time.perf_counter()
+    torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
+    timings["psm"] = time.perf_counter() - t2
+    timings["total"] = time.perf_counter() - t0
+    manifest = {
+        "model": "ds3d 2D pose: forest cascade unaries + pictorial structure model",
+        "data": {
+            "train": f"LSP train im0001-im{1000 - cfg.n_val:04d} + LSPet im00001-im10000"
+            + (f", {cfg.max_images} of them drawn with the seed" if cfg.max_images else ""),
+            "validation": f"LSP train im{1001 - cfg.n_val:04d}-im1000 (not trained on)",
+            "n_train_images": len(train_ann),
+            "terms": "LSP/LSPet: research use only (Johnson & Everingham, BMVC 2010, CVPR 2011)",
+        },
+        "seed": cfg.seed,
+        "train_config": asdict(cfg),
+        "params": asdict(params),
+        "layers": [f"forest{i + 1}.pt" for i in range(len(layers))],
+        "psm": "psm.pt",
+        "train_seconds_1_thread": {k: round(v, 1) for k, v in timings.items()},
+        "metrics": {},
+    }
+    write_manifest(out_dir, manifest)
+    if evaluate is not None:
+        manifest["metrics"]["validation"] = evaluate(out_dir)
+        write_manifest(out_dir, manifest)
+    return manifest
+
+
+def write_manifest(out_dir: Path, manifest: dict) -> None:
+    (Path(out_dir) / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
