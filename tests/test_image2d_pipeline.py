@@ -1,0 +1,131 @@
+"""The 2D stage end to end: `ds3d train-2d --small` on real LSP data, then the estimator."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from ds3d.errors import InvalidImage
+from ds3d.image2d import commands
+from ds3d.image2d.estimator import (
+    LOG_EPS,
+    EstimatorParams,
+    PoseEstimator2D,
+    context_channels,
+    valid_cells,
+)
+from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
+from ds3d.paths import data_root
+
+needs_data = pytest.mark.skipif(
+    not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
+)
+
+
+def _cli(argv):
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="command", required=True)
+    evals = sub.add_parser("eval").add_subparsers(dest="what", required=True)
+    benches = sub.add_parser("bench").add_subparsers(dest="what", required=True)
+    commands.register(sub, evals, benches)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    out = tmp_path_factory.mktemp("image2d")
+    assert _cli(["train-2d", "--small", "--no-eval", "--out", str(out), "--seed", "3"]) == 0
+    return out
+
+
+def test_lab_of_known_colours():
+    rgb = torch.tensor([[[255, 255, 255], [0, 0, 0], [255, 0, 0]]], dtype=torch.uint8)
+    lab = rgb_to_lab(rgb.permute(2, 0, 1)[None].reshape(1, 3, 1, 3))[0, :, 0].T
+    np.testing.assert_allclose(lab[0], [100, 0, 0], atol=0.05)
+    np.testing.assert_allclose(lab[1], [0, 0, 0], atol=0.05)
+    np.testing.assert_allclose(lab[2], [53.24, 80.09, 67.20], atol=0.1)
+
+
+def test_channels_see_edges_and_their_orientation():
+    img = np.zeros((1, 20, 20, 3), dtype=np.uint8)
+    img[:, :, 10:] = 255  # a vertical edge: horizontal gradient, orientation bin 0
+    ch = image_channels(torch.from_numpy(img))
+    assert ch.shape == (1, 12, 20, 20)
+    assert ch[0, 3, 10, 9] > 0.3 and ch[0, 3, 10, 2] == 0
+    assert ch[0, 4:, 10, 9].argmax() == 0
+
+
+def test_box_mean_is_a_zero_padded_box_filter():
+    x = torch.rand(2, 3, 11, 8, dtype=torch.float64)
+    want = F.avg_pool2d(x, 5, stride=1, padding=2, count_include_pad=True)
+    torch.testing.assert_close(box_mean(x, 2), want)
+
+
+def test_context_channels_and_valid_cells_follow_the_grid():
+    probs = torch.arange(6.0).reshape(1, 1, 2, 3).expand(1, 14, 2, 3)
+    ctx = context_channels(probs, stride=3, height=5, width=8)
+    assert ctx.shape == (1, 14, 5, 8)
+    # pixel (y, x) reads the nearest grid cell (y / 3, x / 3)
+    assert ctx[0, 0, 0, 0] == 0 and ctx[0, 0, 0, 4] == 1 and ctx[0, 0, 4, 7] == 5
+    valid = valid_cells([(5, 8), (2, 4)], 5, 8, 3)
+    assert valid.shape == (2, 1, 2, 3)
+    assert valid[0].all() and valid[1, 0].tolist() == [[True, True, False], [False, False, False]]
+
+
+@needs_data
+def test_small_training_writes_a_loadable_model(small_model):
+    manifest = json.loads((small_model / "manifest.json").read_text())
+    assert manifest["seed"] == 3 and manifest["layers"] == ["forest1.pt", "forest2.pt"]
+    assert "LSPet" in manifest["data"]["train"]
+    est = PoseEstimator2D.load(small_model)
+    assert [f.n_trees for f in est.layers] == [3, 3]
+    assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
+    assert est.mixtures.n_components == 15
+
+
+@needs_data
+def test_estimate_batches_of_mixed_images_and_boxes(small_model):
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (240, 320, 3))]
+    res = est.estimate(images, bboxes=[None, (100, 40, 160, 200)])
+    assert res.joints_2d.shape == (2, 14, 2) and torch.isfinite(res.joints_2d).all()
+    assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
+    assert res.unaries.shape[:2] == (2, 14) and (res.unaries <= 0).all()
+    assert set(res.timings) == {"features", "traversal", "psm", "total"}
+    # each image alone gives the same pose as in the batch (padding does not leak)
+    for i in range(2):
+        alone = est.estimate([images[i]], bboxes=[[None, (100, 40, 160, 200)][i]])
+        torch.testing.assert_close(alone.joints_2d[0], res.joints_2d[i])
+    # the box crop: joints land in the image, near the box
+    assert (res.joints_2d[1, :, 0] > 20).all() and (res.joints_2d[1, :, 0] < 240).all()
+
+
+@needs_data
+def test_sample_unaries_reads_the_maps_at_image_points(small_model):
+    est = PoseEstimator2D.load(small_model)
+    image = np.random.default_rng(1).integers(0, 256, (160, 100, 3), dtype=np.uint8)
+    res = est.estimate([image])
+    # image points of a few cells, through map_to_image
+    cells = torch.tensor([[2.0, 3.0], [5.0, 1.0], [0.0, 0.0]])
+    uv1 = torch.cat([cells, torch.ones(3, 1)], 1)
+    points = (res.map_to_image[0] @ uv1.T).T  # (3, 2)
+    sampled = res.sample_unaries(points[None, :, None, :].expand(1, 3, 14, 2))  # (1, 3, 14)
+    for k, (u, v) in enumerate(cells.long().tolist()):
+        torch.testing.assert_close(sampled[0, k], res.unaries[0, :, v, u])
+    far = res.sample_unaries(torch.full((1, 1, 14, 2), -500.0))
+    torch.testing.assert_close(far, torch.full((1, 1, 14), float(np.log(LOG_EPS))))
+
+
+def test_estimate_rejects_bad_inputs():
+    est = PoseEstimator2D([], None, EstimatorParams())
+    with pytest.raises(ValueError):
+        est.estimate([])
+    with pytest.raises(InvalidImage):
+        est.estimate([np.zeros((10, 10), dtype=np.uint8)])
+    with pytest.raises(ValueError):
+        est.estimate([np.zeros((10, 10, 3), dtype=np.uint8)], bboxes=[(5, 5, 2, 2)])
