@@ -40,18 +40,9 @@ class Sample:
     status: str  # "200", "503", ... or "error:<exception>"
 
 
-def lsp_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """LSP joints.mat -> joints_2d (N, 14, 2) float32 0-based pixels, visible (N, 14) bool."""
-    from scipy.io import loadmat
-
-    joints = loadmat(str(path))["joints"]  # (3, 14, N): x, y, flag with 0 = visible
-    xy = np.transpose(joints[:2], (2, 1, 0)).astype(np.float32) - 1.0
-    visible = np.transpose(joints[2], (1, 0)) == 0
-    return xy, visible
-
-
 def lift_payloads(poses: tuple[np.ndarray, np.ndarray], items: int, count: int, seed: int):
-    """`count` JSON bodies of `items` random poses each."""
+    """`count` JSON bodies of `items` random poses each. poses: joints_2d (N, 14, 2) pixels,
+    visible (N, 14) bool."""
     xy, visible = poses
     rng = random.Random(seed)
     bodies = []
@@ -70,9 +61,9 @@ def image_payloads(folder: Path, limit: int) -> list[tuple[str, bytes]]:
     return [(p.name, p.read_bytes()) for p in files]
 
 
-def summarize(samples: list[Sample], duration_s: float) -> dict:
+def summarize(samples: list[Sample], duration_s: float, deadline_s: float | None = None) -> dict:
     """Throughput (all answers and 200s per second), latency percentiles (ms) of the 200s and of
-    all answers, counts by status."""
+    all answers, counts by status; with a deadline, how many answers came later than it."""
     counts: dict[str, int] = {}
     for s in samples:
         counts[s.status] = counts.get(s.status, 0) + 1
@@ -100,6 +91,10 @@ def summarize(samples: list[Sample], duration_s: float) -> dict:
             st: 1000.0 * max(s.latency_s for s in samples if s.status == st) for st in counts
         },
         "status_counts": dict(sorted(counts.items())),
+        "deadline_s": deadline_s,
+        "over_deadline": None
+        if deadline_s is None
+        else sum(s.latency_s > deadline_s for s in samples),
     }
 
 
@@ -170,10 +165,10 @@ async def open_loop(runner: Runner, rate: float, duration_s: float, max_requests
 
 async def run(args) -> tuple[dict, list[Sample]]:
     if args.endpoint == "lift":
-        from ds3d.paths import data_root
+        from ds3d.data.lsp import load_lsp
 
-        poses = lsp_poses(args.poses or data_root() / "lsp" / "joints.mat")
-        payloads = lift_payloads(poses, args.items, 512, args.seed)
+        lsp = load_lsp(args.lsp_root)
+        payloads = lift_payloads((lsp.joints, lsp.visible), args.items, 512, args.seed)
     else:
         if args.images is None:
             raise SystemExit("--endpoint pose needs --images DIR")
@@ -186,7 +181,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
         else:
             await open_loop(runner, args.rate, args.duration, args.max_requests)
         elapsed = time.perf_counter() - runner.t0
-        result = summarize(runner.samples, elapsed)
+        result = summarize(runner.samples, elapsed, args.deadline)
         after = {path: (await client.get(path)).status_code for path in ("/healthz", "/readyz")}
     result.update(
         endpoint=args.endpoint,
@@ -211,10 +206,11 @@ def parse_args(argv):
     p.add_argument("--duration", type=float, default=10.0, help="seconds of load (max 600)")
     p.add_argument("--max-requests", type=int, default=100_000)
     p.add_argument("--items", type=int, default=1, help="lift: poses per request")
-    p.add_argument("--poses", type=Path, help="LSP joints.mat (default: data_root()/lsp)")
+    p.add_argument("--lsp-root", type=Path, help="LSP folder (default: data_root()/lsp)")
     p.add_argument("--images", type=Path, help="pose: folder of images")
     p.add_argument("--timeout", type=float, default=30.0, help="client timeout per request (s)")
     p.add_argument("--max-connections", type=int, default=512)
+    p.add_argument("--deadline", type=float, help="count answers slower than this (s)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="folder for JSON + PNG")
     p.add_argument("--name", help="file stem (default: endpoint_mode_N)")
