@@ -3,8 +3,10 @@
 
 Both models have six parameters per problem, all of order one so that L-BFGS sees a well-scaled
 problem: params = (r (3): axis-angle rotation, a, b, w).
-- Perspective, intrinsics K given: X_cam = R X + exp(w) * DEPTH_UNIT * (a, b, 1), so (a, b) is the
-  root's normalised image position and exp(w) * DEPTH_UNIT its depth in mm; uv = K X_cam / z.
+- Perspective, intrinsics K given: X_cam = R X + depth * (a * spread / f, b * spread / f, 1) with
+  depth = exp(w) * DEPTH_UNIT mm; uv = K X_cam / z. (a, b) is the root's image position in units of
+  the 2D pose's spread, so that a unit of a, of b or of rotation moves the joints by a similar
+  number of pixels: L-BFGS then sees a well-conditioned problem.
 - Weak perspective, no intrinsics: uv = centre + spread * (exp(w) * (R X)_xy / DEPTH_UNIT + (a, b)),
   where `centre` (px) and `spread` (px) are fixed per problem from the 2D pose being fitted. This
   is an orthographic camera with unknown scale: what a person far from the camera looks like.
@@ -46,28 +48,41 @@ class CameraFrame:
     centre: torch.Tensor
     spread: torch.Tensor
 
-    def index(self, selector) -> CameraFrame:
-        k = None if self.intrinsics is None else self.intrinsics[selector]
-        return CameraFrame(k, self.centre[selector], self.spread[selector])
+    def unsqueeze(self, dim: int) -> CameraFrame:
+        """Insert a broadcast dimension into the leading dims."""
+        k = None if self.intrinsics is None else self.intrinsics.unsqueeze(dim)
+        return CameraFrame(k, self.centre.unsqueeze(dim), self.spread.unsqueeze(dim))
+
+    def repeat(self, times: int) -> CameraFrame:
+        """Each problem `times` times in a row: leading dim B -> B * times."""
+        k = None if self.intrinsics is None else self.intrinsics.repeat_interleave(times, 0)
+        return CameraFrame(k, self.centre.repeat_interleave(times, 0),
+                           self.spread.repeat_interleave(times, 0))  # fmt: skip
 
 
 def project(points: torch.Tensor, params: torch.Tensor, frame: CameraFrame) -> torch.Tensor:
     """points: (..., N, J, 3) mm; params: (..., 6); frame with leading dims (...).
     Returns (..., N, J, 2) px."""
-    rot = rotation_matrix(params[..., :3])[..., None, :, :]  # (..., 1, 3, 3)
+    rot = rotation_matrix(params[..., :3])
     a, b, w = params[..., 3:4], params[..., 4:5], params[..., 5:6]
-    rotated = points @ rot.transpose(-1, -2)  # (..., N, J, 3)
+    # One (N*J, 3) @ (3, 3) product per problem: far faster than N*J tiny batched products.
+    rotated = (points.flatten(-3, -2) @ rot.transpose(-1, -2)).reshape(points.shape)
     if frame.intrinsics is None:
         xy = torch.exp(w)[..., None, None] * rotated[..., :2] / DEPTH_UNIT
         xy = xy + torch.cat([a, b], -1)[..., None, None, :]
         return frame.centre[..., None, None, :] + frame.spread[..., None, None, None] * xy
-    shift = torch.exp(w) * DEPTH_UNIT * torch.cat([a, b, torch.ones_like(a)], -1)
+    focal, principal = _focal_principal(frame.intrinsics)
+    offset = torch.cat([a, b], -1) * frame.spread[..., None] / focal
+    shift = torch.exp(w) * DEPTH_UNIT * torch.cat([offset, torch.ones_like(a)], -1)
     cam = rotated + shift[..., None, None, :]
-    k = frame.intrinsics[..., None, :, :]  # (..., 1, 3, 3)
     z = cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
-    focal = torch.stack([k[..., 0, 0], k[..., 1, 1]], -1)[..., None, :]
-    principal = torch.stack([k[..., 0, 2], k[..., 1, 2]], -1)[..., None, :]
-    return focal * cam[..., :2] / z + principal
+    return focal[..., None, None, :] * cam[..., :2] / z + principal[..., None, None, :]
+
+
+def _focal_principal(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3, 3) intrinsics -> focal lengths (..., 2) and principal point (..., 2), px."""
+    focal = torch.stack([k[..., 0, 0], k[..., 1, 1]], -1)
+    return focal, torch.stack([k[..., 0, 2], k[..., 1, 2]], -1)
 
 
 def initial_params(
@@ -93,9 +108,8 @@ def initial_params(
         ab = (c2 - frame.centre) / frame.spread[..., None]
         ab = ab - scale[..., None] * c3[..., :2] / DEPTH_UNIT
         return torch.cat([zeros, zeros, zeros, ab, scale.clamp_min(1e-6).log()[..., None]], -1)
-    k = frame.intrinsics
-    focal = torch.stack([k[..., 0, 0], k[..., 1, 1]], -1)
-    principal = torch.stack([k[..., 0, 2], k[..., 1, 2]], -1)
+    focal, principal = _focal_principal(frame.intrinsics)
     depth = focal.mean(-1) * spread_3d / spread_2d.clamp_min(1e-3)  # mm
     ab = (c2 - principal) / focal - c3[..., :2] / depth[..., None]
+    ab = ab * focal / frame.spread[..., None]
     return torch.cat([zeros, zeros, zeros, ab, (depth / DEPTH_UNIT).log()[..., None]], -1)

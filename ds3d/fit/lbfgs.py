@@ -47,14 +47,18 @@ def minimize(
     x0: torch.Tensor,
     iterations: int = 20,
     history: int = 8,
-    max_halvings: int = 12,
+    max_halvings: int = 10,
     armijo: float = 1e-4,
+    tolerance: float = 1e-5,
+    relative_decrease: float = 1e-6,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Minimise B independent energies.
 
     energy: maps x (B, n) to (B,) energies; it must not mix problems (row b of the output may
     depend only on row b of x). x0: (B, n) starting points. Returns (x, energy(x)), both detached.
-    A problem whose line search fails keeps its point; the energy never increases.
+    A problem stops when its gradient's largest entry falls below `tolerance`, when a step
+    lowers its energy by less than `relative_decrease` of its value, or when its line search finds
+    no decrease (converged to float precision); the energy never increases.
     """
     x = x0.detach().clone()
     value, grad = _value_and_grad(energy, x)
@@ -63,7 +67,10 @@ def minimize(
     changes = x.new_zeros(batch, history, dim)
     rho = x.new_zeros(batch, history)
     newest = history - 1
+    active = grad.abs().amax(-1) > tolerance
     for _ in range(iterations):
+        if not bool(active.any()):
+            break
         direction = _direction(grad, steps, changes, rho, newest)
         slope = (direction * grad).sum(-1)
         uphill = slope >= 0  # history gone stale: fall back to steepest descent
@@ -73,19 +80,19 @@ def minimize(
         # Without curvature information, a unit step along -grad has no scale: start small.
         step = torch.where(first, (1.0 / grad.abs().sum(-1).clamp_min(1e-12)).clamp_max(1.0), 1.0)
         accepted = torch.zeros(batch, dtype=torch.bool, device=x.device)
-        new_x, new_value = x.clone(), value.clone()
+        new_x = x.clone()
         for _ in range(max_halvings):
             trial = x + step[:, None] * direction
             with torch.no_grad():
                 trial_value = energy(trial)
-            ok = ~accepted & (trial_value <= value + armijo * step * slope)
+            ok = active & ~accepted & (trial_value <= value + armijo * step * slope)
             new_x = torch.where(ok[:, None], trial, new_x)
-            new_value = torch.where(ok, trial_value, new_value)
             accepted |= ok
-            if bool(accepted.all()):
+            if bool((accepted | ~active).all()):
                 break
             step = torch.where(accepted, step, step / 2)
-        if not bool(accepted.any()):
+        active &= accepted
+        if not bool(active.any()):
             break
         new_value, new_grad = _value_and_grad(energy, new_x)
         s, y = new_x - x, new_grad - grad
@@ -95,7 +102,9 @@ def minimize(
         steps[:, newest] = torch.where(good[:, None], s, 0.0)
         changes[:, newest] = torch.where(good[:, None], y, 0.0)
         rho[:, newest] = torch.where(good, 1.0 / sy.clamp_min(1e-10), 0.0)
+        progress = value - new_value > relative_decrease * value.abs()
         x = torch.where(accepted[:, None], new_x, x)
         value = torch.where(accepted, new_value, value)
         grad = torch.where(accepted[:, None], new_grad, grad)
+        active &= progress & (grad.abs().amax(-1) > tolerance)
     return x.detach(), value.detach()

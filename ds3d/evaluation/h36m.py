@@ -1,0 +1,106 @@
+"""The paper's Human3.6M protocol (Section 5.2, with ground-truth 2D).
+
+Database from S1, S5, S6, S7, S8, S9; test on every 64th frame of every S11 sequence, seen by all
+four cameras; the 2D input is the ground truth projected with the real camera and the lifter gets
+the intrinsics. Error: the paper's 3D pose error (rigid alignment, no scale), with PA-MPJPE and
+MPJPE (root-aligned at the hip midpoint) beside it, per action and averaged over all frames.
+
+Robustness variants perturb the 2D input: Gaussian noise of sigma px on every coordinate, or one
+random joint per pose displaced by a fixed distance in a random direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_sequences
+from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
+from ds3d.skeleton import NUM_JOINTS, hip_midpoint
+
+
+@dataclass
+class TestCases:
+    """N test poses. joints_2d (N, 14, 2) px; joints_3d (N, 14, 3) mm in the camera frame, root
+    at the hip midpoint; intrinsics (N, 3, 3); action (N,) names; camera (N,) 1-4."""
+
+    joints_2d: np.ndarray
+    joints_3d: np.ndarray
+    intrinsics: np.ndarray
+    action: np.ndarray
+    camera: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.joints_2d)
+
+    def subset(self, index) -> TestCases:
+        return TestCases(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+
+
+def test_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> TestCases:
+    """Every `stride`-th frame of every sequence of `subject`, four cameras each."""
+    sequences = load_h36m_sequences((subject,))
+    cameras = load_cameras()
+    parts: dict[str, list] = {f: [] for f in TestCases.__dataclass_fields__}
+    for key, poses in sequences.items():
+        frames = poses[::stride]
+        for cam_id in (1, 2, 3, 4):
+            camera = cameras[(subject, cam_id)]
+            in_camera = camera.to_camera(frames)
+            parts["joints_2d"].append(camera.project(frames))
+            parts["joints_3d"].append(in_camera - hip_midpoint(in_camera)[:, None])
+            parts["intrinsics"].append(np.repeat(camera.intrinsics[None], len(frames), 0))
+            parts["action"].append(np.full(len(frames), action_name(key.split("/")[1])))
+            parts["camera"].append(np.full(len(frames), cam_id))
+    return TestCases(*(np.concatenate(parts[f]) for f in TestCases.__dataclass_fields__))
+
+
+def perturb(joints_2d: np.ndarray, noise_px: float = 0.0, outlier_px: float = 0.0,
+            seed: int = 0) -> np.ndarray:  # fmt: skip
+    """Gaussian noise of `noise_px` on every coordinate and/or one random joint per pose moved
+    by `outlier_px` in a random direction. joints_2d: (N, 14, 2) px."""
+    rng = np.random.default_rng(seed)
+    out = joints_2d + rng.normal(0.0, noise_px, joints_2d.shape) if noise_px else joints_2d.copy()
+    if outlier_px:
+        joint = rng.integers(0, NUM_JOINTS, len(out))
+        angle = rng.uniform(0, 2 * np.pi, len(out))
+        out[np.arange(len(out)), joint] += outlier_px * np.stack([np.cos(angle), np.sin(angle)], 1)
+    return out.astype(np.float32)
+
+
+def lift_all(lifter, cases: TestCases, joints_2d: np.ndarray, batch_size: int = 64):
+    """Lift every case in batches. Returns the 3D poses (N, 14, 3) and chosen sets (N,)."""
+    poses, sets = [], []
+    for start in range(0, len(cases), batch_size):
+        part = slice(start, start + batch_size)
+        result = lifter.lift(joints_2d[part], intrinsics=cases.intrinsics[part])
+        poses.append(result.joints_3d.numpy())
+        sets.extend(result.joint_set)
+    return np.concatenate(poses), np.array(sets)
+
+
+def score(pred: np.ndarray, cases: TestCases, sets: np.ndarray | None = None) -> dict:
+    """Errors (mm) per action and overall (mean over frames) + how often each set was chosen."""
+    errors = {
+        "pose_error": rigid_error(pred, cases.joints_3d).numpy(),
+        "pa_mpjpe": pa_mpjpe(pred, cases.joints_3d).numpy(),
+        "mpjpe": mpjpe(pred, cases.joints_3d).numpy(),
+    }
+    report: dict = {name: float(v.mean()) for name, v in errors.items()}
+    report["frames"] = len(cases)
+    report["per_action"] = {
+        action: {name: float(v[cases.action == action].mean()) for name, v in errors.items()}
+        for action in sorted(set(cases.action.tolist()))
+    }
+    if sets is not None:
+        names, counts = np.unique(sets, return_counts=True)
+        report["chosen_sets"] = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
+    return report
+
+
+def evaluate(lifter, cases: TestCases, noise_px=0.0, outlier_px=0.0, seed=0, batch_size=64):
+    """The protocol end to end for one input variant: a JSON-ready report."""
+    joints_2d = perturb(cases.joints_2d, noise_px, outlier_px, seed)
+    pred, sets = lift_all(lifter, cases, joints_2d, batch_size)
+    return score(pred, cases, sets)

@@ -1,0 +1,72 @@
+"""Pose metrics as pure functions over batches (numpy or torch in, torch out).
+
+3D (mm): mpjpe (no alignment beyond what the caller did), rigid_error (the paper's "3D pose
+error": rotation + translation, no scale), pa_mpjpe (Procrustes with scale). 2D (px): pck and
+the mean pixel error.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ds3d.skeleton import L_HIP, L_SHOULDER, R_HIP, R_SHOULDER
+
+
+def _t(value) -> torch.Tensor:
+    return torch.as_tensor(value).double()
+
+
+def mpjpe(pred, gt) -> torch.Tensor:
+    """Mean per-joint position error. pred, gt: (N, J, D). Returns (N,) in their unit."""
+    return (_t(pred) - _t(gt)).norm(dim=-1).mean(-1)
+
+
+def align(pred, gt, scale: bool) -> torch.Tensor:
+    """The similarity (scale=True) or rigid (scale=False) transform of pred that best fits gt in
+    least squares (Kabsch/Umeyama, reflections excluded). pred, gt: (N, J, 3). Returns (N, J, 3)."""
+    pred, gt = _t(pred), _t(gt)
+    mu_p, mu_g = pred.mean(-2, keepdim=True), gt.mean(-2, keepdim=True)
+    p, g = pred - mu_p, gt - mu_g
+    u, sigma, vh = torch.linalg.svd(p.transpose(-1, -2) @ g)
+    d = torch.sign(torch.linalg.det(u @ vh))  # -1 where the best fit would be a reflection
+    fix = torch.ones_like(sigma)
+    fix[..., -1] = d
+    rotation = u @ torch.diag_embed(fix) @ vh  # applied as p @ rotation
+    s = (sigma * fix).sum(-1) / (p**2).sum((-1, -2)) if scale else torch.ones_like(d)
+    return s[..., None, None] * p @ rotation + mu_g
+
+
+def rigid_error(pred, gt) -> torch.Tensor:
+    """The paper's 3D pose error: mean joint distance after a rigid alignment. (N,) mm."""
+    return mpjpe(align(pred, gt, scale=False), gt)
+
+
+def pa_mpjpe(pred, gt) -> torch.Tensor:
+    """MPJPE after Procrustes alignment with scale. (N,) mm."""
+    return mpjpe(align(pred, gt, scale=True), gt)
+
+
+def torso_diameter(gt) -> torch.Tensor:
+    """LSP's PCK reference: the distance between opposite shoulder and hip, (N,) px. gt:
+    (N, 14, 2). The mean of the two diagonals, which is defined when the torso is foreshortened."""
+    gt = _t(gt)
+    one = (gt[:, R_SHOULDER] - gt[:, L_HIP]).norm(dim=-1)
+    other = (gt[:, L_SHOULDER] - gt[:, R_HIP]).norm(dim=-1)
+    return (one + other) / 2
+
+
+def pck(pred, gt, visible=None, threshold: float = 0.2) -> torch.Tensor:
+    """Per-joint PCK: the fraction of visible joints within threshold * torso diameter.
+    pred, gt: (N, 14, 2) px; visible: (N, 14) bool or None. Returns (14,) in [0, 1]."""
+    pred, gt = _t(pred), _t(gt)
+    mask = torch.ones(gt.shape[:2], dtype=torch.bool) if visible is None else _t(visible).bool()
+    correct = (pred - gt).norm(dim=-1) <= threshold * torso_diameter(gt)[:, None]
+    return (correct & mask).sum(0).double() / mask.sum(0).clamp_min(1)
+
+
+def pixel_error(pred, gt, visible=None) -> torch.Tensor:
+    """Mean distance (px) over visible joints, per joint: (14,)."""
+    pred, gt = _t(pred), _t(gt)
+    mask = torch.ones(gt.shape[:2], dtype=torch.bool) if visible is None else _t(visible).bool()
+    distance = (pred - gt).norm(dim=-1) * mask
+    return distance.sum(0) / mask.sum(0).clamp_min(1)

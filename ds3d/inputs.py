@@ -1,0 +1,62 @@
+"""Validation of user-supplied poses and cameras at the library's edge: shapes, dtypes, finite
+values. Everything past this point may assume well-formed tensors."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ds3d.errors import InvalidPose
+from ds3d.skeleton import NUM_JOINTS
+
+
+def _tensor(value, name: str) -> torch.Tensor:
+    if isinstance(value, torch.Tensor):
+        return value.detach().float()
+    try:
+        return torch.as_tensor(np.asarray(value, dtype=np.float32))
+    except (TypeError, ValueError) as err:
+        raise InvalidPose(f"{name}: not a numeric array ({err})") from err
+
+
+def joints_2d_batch(joints_2d) -> torch.Tensor:
+    """(B, 14, 2) or (14, 2) array-like, px -> (B, 14, 2) float32 tensor; raises InvalidPose."""
+    x = _tensor(joints_2d, "joints_2d")
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[-1] != 2:
+        raise InvalidPose(f"joints_2d: expected shape (B, 14, 2), got {tuple(x.shape)}")
+    if x.shape[1] != NUM_JOINTS:
+        raise InvalidPose(f"joints_2d: expected {NUM_JOINTS} joints (LSP order), got {x.shape[1]}")
+    if not bool(torch.isfinite(x).all()):
+        raise InvalidPose("joints_2d: contains NaN or infinite coordinates")
+    return x
+
+
+def visibility_batch(visible, batch: int) -> torch.Tensor:
+    """None or (B, 14) / (14,) bool-like -> (B, 14) bool; at least 2 visible joints per pose."""
+    if visible is None:
+        return torch.ones(batch, NUM_JOINTS, dtype=torch.bool)
+    v = torch.as_tensor(np.asarray(visible)).bool()
+    if v.ndim == 1:
+        v = v[None].expand(batch, -1)
+    if tuple(v.shape) != (batch, NUM_JOINTS):
+        raise InvalidPose(f"visible: expected shape ({batch}, 14), got {tuple(v.shape)}")
+    if bool((v.sum(-1) < 2).any()):
+        raise InvalidPose("visible: every pose needs at least two visible joints")
+    return v
+
+
+def intrinsics_batch(intrinsics, batch: int) -> torch.Tensor | None:
+    """None or (B, 3, 3) / (3, 3) pinhole matrices -> (B, 3, 3) float32 with positive focal
+    lengths."""
+    if intrinsics is None:
+        return None
+    k = _tensor(intrinsics, "intrinsics")
+    if k.ndim == 2:
+        k = k[None].expand(batch, -1, -1)
+    if tuple(k.shape) != (batch, 3, 3):
+        raise InvalidPose(f"intrinsics: expected shape ({batch}, 3, 3), got {tuple(k.shape)}")
+    if not bool(torch.isfinite(k).all()) or bool((k[:, 0, 0] <= 0).any() | (k[:, 1, 1] <= 0).any()):
+        raise InvalidPose("intrinsics: need finite values and positive focal lengths")
+    return k

@@ -1,0 +1,178 @@
+"""ds3d.Lifter: 2D poses in, 3D poses out, by the 3D stage of the paper (Section 4).
+
+    retrieval      K neighbours per joint set from the pose database        (ds3d.mocap.retrieval)
+    projection fit M_s per set, eq:projerr1, batched L-BFGS                  (ds3d.fit.solve)
+    weighting      keep the K_w best neighbours, eq:wtn                     (ds3d.fit.selection)
+    set choice     s^ by eq:energyS                                         (ds3d.fit.selection)
+    3D fit         X^ by eq:energyMin2 over PCA(18) of the neighbours       (ds3d.fit.solve)
+
+With no image there are no unaries, so a neighbour's weight (eq:wt) is replaced by the negative
+of its own 2D fit residual E_p under M_s: the neighbours that project best onto the 2D pose count
+most. ds3d.Pipeline passes image-based scores instead.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ds3d.fit.camera import CameraFrame, project, rotation_matrix
+from ds3d.fit.energy import projection_energy
+from ds3d.fit.selection import set_energy, top_weighted
+from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
+from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
+from ds3d.mocap.database import PoseDatabase
+from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
+from ds3d.paths import MODELS_DIR
+from ds3d.skeleton import JOINT_SETS, NUM_JOINTS, SET_NAMES, hip_midpoint
+
+
+@dataclass(frozen=True)
+class LifterConfig:
+    """Algorithm parameters; the defaults are the paper's (K, K_w, PCA, omegas)."""
+
+    neighbours: int = 256  # K
+    weighted_neighbours: int = 64  # K_w; equal to K for the unweighted variant
+    weighting: bool = True  # False: all K neighbours with weight 1 (the paper's ablation)
+    pca_components: int = 18
+    joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
+    omega: EnergyWeights = field(default_factory=EnergyWeights)
+    projection_iterations: int = 10
+    pose_iterations: int = 30
+    select_on_all_joints: bool = True
+    index: IndexConfig = field(default_factory=IndexConfig)
+
+
+@dataclass
+class LiftResult:
+    """joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the
+    camera), root at the hip midpoint. joint_set: the chosen set per pose. energy: (B,) the
+    chosen set's eq:energyS value. set_energies: (B, S). projection: (B, 6) M^ (ds3d.fit.camera).
+    timings_ms: wall time of each stage for the whole batch."""
+
+    joints_3d: torch.Tensor
+    joint_set: list[str]
+    energy: torch.Tensor
+    set_energies: torch.Tensor
+    projection: torch.Tensor
+    timings_ms: dict[str, float]
+
+
+class Lifter:
+    """Load once, lift many: `Lifter.load().lift(joints_2d, visible, intrinsics)`."""
+
+    def __init__(self, database: PoseDatabase, config: LifterConfig = LifterConfig(),
+                 device: str | torch.device = "cpu", cache_indices: bool = True):  # fmt: skip
+        self.config = config
+        self.device = torch.device(device)
+        self.database = database
+        self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
+        self.database.poses = self.database.poses.to(self.device)
+        self.database.rotations = self.database.rotations.to(self.device)
+        self.set_ids = [SET_NAMES.index(name) for name in config.joint_sets]
+        masks = torch.zeros(len(SET_NAMES), NUM_JOINTS)
+        for s, name in enumerate(SET_NAMES):
+            masks[s, list(JOINT_SETS[name])] = 1
+        self.set_masks = masks[self.set_ids].to(self.device)  # (S, 14)
+        self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
+
+    @classmethod
+    def load(cls, model_dir: str | Path | None = None, device: str = "cpu",
+             config: LifterConfig = LifterConfig()) -> Lifter:  # fmt: skip
+        """The pose database under `model_dir`/posedb (default: the bundled models/)."""
+        directory = Path(model_dir) if model_dir is not None else MODELS_DIR
+        return cls(PoseDatabase.load(directory / "posedb"), config, device)
+
+    def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
+        """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
+        optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose."""
+        x = joints_2d_batch(joints_2d)
+        vis = visibility_batch(visible, len(x))
+        k = intrinsics_batch(intrinsics, len(x))
+        x, vis = x.to(self.device), vis.to(self.device)
+        k = None if k is None else k.to(self.device)
+        timings: dict[str, float] = {}
+        with torch.no_grad(), _timed(timings, "retrieval", self.device):
+            ids = self.retriever.search(x, self.config.neighbours)[:, self.set_ids]
+            candidates = self.database.candidates(ids.to(self.device))  # (B, S, K, 14, 3)
+        frame = image_frame(x, vis, k)
+        with _timed(timings, "projection_fit", self.device):
+            params, residuals = self.fit_projections(candidates, x, vis, frame)
+        with torch.no_grad(), _timed(timings, "selection", self.device):
+            kept, weights, kept_residuals = self.weight_neighbours(candidates, -residuals)
+            masks = self.set_masks * vis[:, None].float()  # (B, S, 14)
+            if self.config.select_on_all_joints:
+                kept_residuals = projection_energy(
+                    project(kept, params, frame.unsqueeze(1)), x[:, None], vis[:, None].float()
+                )
+            energies = set_energy(kept, weights, kept_residuals, self.config.omega)
+            # A set with a hidden joint only counts when every set has one.
+            complete = (masks == self.set_masks).all(-1)
+            usable = complete | ~complete.any(-1, keepdim=True)
+            best = torch.where(usable, energies, torch.inf).argmin(-1)  # (B,)
+        rows = torch.arange(len(x), device=self.device)
+        with _timed(timings, "pose_fit", self.device):
+            pose = fit_pose(kept[rows, best], weights[rows, best], params[rows, best], x,
+                            masks[rows, best], frame, self.config.omega,
+                            self.config.pca_components, self.config.pose_iterations)  # fmt: skip
+        rotation = rotation_matrix(params[rows, best, :3])
+        oriented = pose @ rotation.transpose(-1, -2)
+        oriented = oriented - hip_midpoint(oriented)[:, None]
+        return LiftResult(
+            joints_3d=oriented.detach().cpu(),
+            joint_set=[self.config.joint_sets[i] for i in best.tolist()],
+            energy=energies[rows, best].cpu(),
+            set_energies=energies.cpu(),
+            projection=params[rows, best].cpu(),
+            timings_ms=timings,
+        )
+
+    def fit_projections(self, candidates, joints_2d, visible, frame, start=None):
+        """eq:projerr1 for every (pose, set). candidates: (B, S, K, 14, 3); joints_2d: (B, 14, 2);
+        visible: (B, 14) bool; start: optional (B, S, 6). Returns params (B, S, 6) and residuals
+        (B, S, K). Each set is fitted on its own joints only (a third less work than masking)."""
+        params, residuals = [], []
+        for s, name in enumerate(self.config.joint_sets):
+            joints = list(JOINT_SETS[name])
+            fitted, residual = fit_projection(
+                candidates[:, s][:, :, joints],
+                joints_2d[:, joints],
+                visible[:, joints].float(),
+                frame,
+                None if start is None else start[:, s],
+                self.config.projection_iterations,
+            )
+            params.append(fitted)
+            residuals.append(residual)
+        return torch.stack(params, 1), torch.stack(residuals, 1)
+
+    def weight_neighbours(self, candidates, scores):
+        """eq:wt/eq:wtn. candidates: (B, S, K, 14, 3); scores: (B, S, K), higher is better.
+        Returns the kept neighbours (B, S, K_w, 14, 3), weights (B, S, K_w) and their -scores."""
+        if not self.config.weighting:
+            return candidates, torch.ones_like(scores), -scores
+        index, weights = top_weighted(scores, self.config.weighted_neighbours)
+        kept = torch.take_along_dim(candidates, index[..., None, None], dim=2)
+        return kept, weights, -torch.take_along_dim(scores, index, dim=2)
+
+
+def image_frame(joints_2d: torch.Tensor, visible: torch.Tensor, intrinsics) -> CameraFrame:
+    """The fixed per-pose frame of the projection model: the visible joints' centroid and RMS
+    spread (px) for weak perspective; intrinsics when given. Leading dim B."""
+    m = visible.float()[..., None]
+    centre = (joints_2d * m).sum(-2) / m.sum(-2)
+    spread = (((joints_2d - centre[:, None]) ** 2 * m).sum((-1, -2)) / m.sum((-1, -2))).sqrt()
+    return CameraFrame(intrinsics, centre, spread.clamp_min(1.0))
+
+
+@contextmanager
+def _timed(timings: dict[str, float], stage: str, device: torch.device):
+    start = time.perf_counter()
+    yield
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    timings[stage] = timings.get(stage, 0.0) + 1000 * (time.perf_counter() - start)
