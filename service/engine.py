@@ -1,0 +1,152 @@
+"""The models behind the service and their batch functions (run on the one model thread).
+
+`Engine.lift_batch` and `Engine.pose_batch` take a list of per-request items and return one
+output per item, in order; they are the `run_batch` functions of the MicroBatchers. Items that
+differ in which optional inputs they carry (intrinsics, bbox) are run as separate library calls,
+because the library takes each optional input for the whole batch or not at all.
+"""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ds3d.errors import DataFormatError
+from ds3d.lifter import Lifter
+
+
+@dataclass(frozen=True)
+class LiftInput:
+    joints_2d: np.ndarray  # (14, 2) float32, pixels
+    visible: np.ndarray  # (14,) bool
+    intrinsics: np.ndarray | None  # (3, 3) float32, or None when unknown
+
+
+@dataclass(frozen=True)
+class PoseInput:
+    image: np.ndarray  # (H, W, 3) uint8
+    bbox: np.ndarray | None  # (4,) float32 x0, y0, x1, y1 pixels
+    intrinsics: np.ndarray | None  # (3, 3) float32
+
+
+@dataclass(frozen=True)
+class BatchInfo:
+    """The library call an item ran in: an id (to sum stage times once per call), its size and
+    its per-stage times."""
+
+    call_id: int
+    size: int
+    timings_ms: dict[str, float]
+
+
+@dataclass(frozen=True)
+class LiftOutput:
+    joints_3d: np.ndarray  # (14, 3) float32, mm
+    joint_set: str
+    energy: float
+    batch: BatchInfo
+
+
+@dataclass(frozen=True)
+class PoseOutput:
+    joints_2d: np.ndarray  # (14, 2) float32, pixels
+    joints_3d: np.ndarray  # (14, 3) float32, mm
+    confidence: np.ndarray  # (14,) float32 in [0, 1]
+    joint_set: str
+    batch: BatchInfo
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def _groups(keys: Sequence[tuple[bool, ...]]) -> dict[tuple[bool, ...], list[int]]:
+    """Indices of the items grouped by which optional inputs they carry."""
+    groups: dict[tuple[bool, ...], list[int]] = {}
+    for i, key in enumerate(keys):
+        groups.setdefault(key, []).append(i)
+    return groups
+
+
+def load_pipeline(model_dir: Path | None, device: str):
+    """The image -> 2D + 3D Pipeline of model_dir, or (None, why) when it has no 2D stage or the
+    library has no pipeline yet."""
+    try:
+        module = importlib.import_module("ds3d.pipeline")
+    except ModuleNotFoundError as e:
+        if e.name != "ds3d.pipeline":
+            raise
+        return None, "this build of ds3d has no image pipeline; only /v1/lift is served"
+    try:
+        return module.Pipeline.load(model_dir=model_dir, device=device), None
+    except (DataFormatError, FileNotFoundError) as e:
+        return None, f"the model directory has no 2D stage: {e}"
+
+
+class Engine:
+    """The loaded models. `on_timings(timings_ms)`, when set, is called once per library call
+    (the app points it at its metrics)."""
+
+    def __init__(self, lifter: Lifter, pipeline=None, pose_unavailable: str | None = None):
+        self.lifter = lifter
+        self.pipeline = pipeline
+        self.pose_unavailable = pose_unavailable if pipeline is None else None
+        self.on_timings: Callable[[dict[str, float]], None] | None = None
+        self._call_ids = itertools.count()
+
+    @classmethod
+    def load(cls, model_dir: Path | None, device: str = "cpu") -> Engine:
+        lifter = Lifter.load(model_dir=model_dir, device=device)
+        pipeline, why = load_pipeline(model_dir, device)
+        return cls(lifter, pipeline, why)
+
+    @property
+    def model_id(self) -> str:
+        return self.lifter.model_id
+
+    def _batch_info(self, size: int, timings_ms: dict[str, float]) -> BatchInfo:
+        timings = {k: float(v) for k, v in timings_ms.items()}
+        if self.on_timings is not None:
+            self.on_timings(timings)
+        return BatchInfo(next(self._call_ids), size, timings)
+
+    def lift_batch(self, items: Sequence[LiftInput]) -> list[LiftOutput]:
+        """3D poses of B 2D poses; raises ds3d.errors.InvalidPose when the library refuses one."""
+        out: list[LiftOutput | None] = [None] * len(items)
+        for (has_k,), idx in _groups([(it.intrinsics is not None,) for it in items]).items():
+            joints = np.stack([items[i].joints_2d for i in idx])
+            visible = np.stack([items[i].visible for i in idx])
+            intrinsics = np.stack([items[i].intrinsics for i in idx]) if has_k else None
+            res = self.lifter.lift(joints, visible=visible, intrinsics=intrinsics)
+            info = self._batch_info(len(idx), res.timings_ms)
+            joints_3d, energy = _numpy(res.joints_3d), _numpy(res.energy)
+            for j, i in enumerate(idx):
+                out[i] = LiftOutput(joints_3d[j], res.joint_set[j], float(energy[j]), info)
+        return out  # type: ignore[return-value]
+
+    def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:
+        """2D and 3D poses of B images (needs the pipeline). The contract used here:
+        `Pipeline.estimate(images: list of (H, W, 3) uint8, bboxes: None or B boxes (x0, y0,
+        x1, y1) px, intrinsics: None or (B, 3, 3))` returns joints_2d (B, 14, 2) px,
+        joints_3d (B, 14, 3) mm, confidence (B, 14), joint_set (B names), timings_ms."""
+        if self.pipeline is None:
+            raise RuntimeError(self.pose_unavailable)
+        out: list[PoseOutput | None] = [None] * len(items)
+        keys = [(it.bbox is not None, it.intrinsics is not None) for it in items]
+        for (has_box, has_k), idx in _groups(keys).items():
+            res = self.pipeline.estimate(
+                [items[i].image for i in idx],
+                bboxes=[items[i].bbox for i in idx] if has_box else None,
+                intrinsics=np.stack([items[i].intrinsics for i in idx]) if has_k else None,
+            )
+            info = self._batch_info(len(idx), res.timings_ms)
+            j2, j3, conf = _numpy(res.joints_2d), _numpy(res.joints_3d), _numpy(res.confidence)
+            for j, i in enumerate(idx):
+                out[i] = PoseOutput(j2[j], j3[j], conf[j], res.joint_set[j], info)
+        return out  # type: ignore[return-value]

@@ -1,0 +1,304 @@
+"""The service end to end: a real uvicorn on 127.0.0.1 (random free port, in a thread) serving
+the bundled Lifter, driven by the client SDK and by raw httpx."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import socket
+import struct
+import threading
+import time
+import zlib
+from contextlib import contextmanager
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+from PIL import Image
+from prometheus_client.parser import text_string_to_metric_families
+
+from ds3d.data.lsp import load_lsp
+from ds3d.errors import DataFormatError
+from ds3d.paths import MODELS_DIR
+from ds3d.skeleton import JOINT_NAMES
+from service.app import create_app
+from service.client import AsyncPoseClient, PoseClient, ServiceError
+from service.engine import Engine
+from service.settings import Settings
+
+# The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
+MODEL_DIR = Settings().model_dir or MODELS_DIR
+if not (MODEL_DIR / "posedb").exists():
+    pytest.skip(f"no pose database under {MODEL_DIR}", allow_module_level=True)
+
+MAX_IMAGE_BYTES = 100_000
+
+
+@contextmanager
+def serve(engine: Engine, **settings):
+    """A uvicorn server for create_app(Settings(**settings), engine) on a free port; its URL."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    app = create_app(Settings(port=port, **settings), engine)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "server did not start"
+        time.sleep(0.02)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
+        sock.close()
+
+
+@pytest.fixture(scope="module")
+def engine():
+    return Engine.load(MODEL_DIR, "cpu")
+
+
+@pytest.fixture(scope="module")
+def url(engine):
+    with serve(engine, max_batch_size=16, max_wait_ms=30, max_image_bytes=MAX_IMAGE_BYTES) as u:
+        yield u
+
+
+@pytest.fixture(scope="module")
+def poses():
+    """Real 2D poses (pixels): the first 8 LSP annotations."""
+    try:
+        return load_lsp().joints[:8]
+    except DataFormatError:
+        pytest.skip("no LSP annotations under data_root()")
+
+
+def metric(url: str, name: str, labels: dict) -> dict[str, float]:
+    """Samples of metric `name` whose labels include `labels`: {sample name + le: value}."""
+    text = httpx.get(f"{url}/metrics").text
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name.startswith(name) and labels.items() <= s.labels.items():
+                out[s.name + s.labels.get("le", "")] = s.value
+    return out
+
+
+def wait_for_depth(url: str, depth: int, timeout_s: float = 10) -> None:
+    """Wait until `depth` items wait in the lift queue."""
+    deadline = time.monotonic() + timeout_s
+    while metric(url, "ds3d_queue_depth", {"queue": "lift"})["ds3d_queue_depth"] < depth:
+        assert time.monotonic() < deadline, f"queue never reached {depth}"
+        time.sleep(0.01)
+
+
+def test_health_and_readiness(url, engine):
+    assert httpx.get(f"{url}/healthz").json()["status"] == "alive"
+    ready = httpx.get(f"{url}/readyz")
+    assert ready.status_code == 200 and ready.json()["model"] == engine.model_id
+    paths = httpx.get(f"{url}/openapi.json").json()["paths"]
+    assert {"/v1/lift", "/v1/pose", "/healthz", "/readyz"} <= set(paths)
+    pose_body = paths["/v1/pose"]["post"]["requestBody"]["content"]
+    assert {"multipart/form-data", "image/*"} <= set(pose_body)
+    assert httpx.get(f"{url}/docs").status_code == 200
+
+
+def test_lift_matches_the_library(url, engine, poses):
+    x = poses[:4]
+    vis = np.ones((4, 14), bool)
+    vis[1, 5] = False
+    with PoseClient(url) as client:
+        res = client.lift(x, visible=vis)
+    # One request's items are queued at once, so they form exactly this batch of 4.
+    ref = engine.lifter.lift(x, visible=vis)
+    np.testing.assert_allclose(res.joints_3d, ref.joints_3d.numpy(), atol=1e-3)
+    assert res.joint_set == ref.joint_set
+    assert res.model == engine.model_id and res.joint_names == list(JOINT_NAMES)
+    assert {"retrieval", "total"} <= set(res.timings_ms)
+
+
+def test_lift_with_intrinsics_matches_the_library(url, engine, poses):
+    k = np.array([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]], dtype=np.float32)
+    with PoseClient(url) as client:
+        res = client.lift(poses[4:6], intrinsics=k)
+    ref = engine.lifter.lift(poses[4:6], intrinsics=np.stack([k, k]))
+    np.testing.assert_allclose(res.joints_3d, ref.joints_3d.numpy(), atol=1e-3)
+
+
+def test_concurrent_requests_share_batches(url, poses):
+    before = metric(url, "ds3d_batch_size", {"queue": "lift"})
+
+    async def burst():
+        async with AsyncPoseClient(url) as client:
+            return await asyncio.gather(*(client.lift(poses[i % 8]) for i in range(24)))
+
+    results = asyncio.run(burst())
+    assert all(r.joints_3d.shape == (1, 14, 3) for r in results)
+    after = metric(url, "ds3d_batch_size", {"queue": "lift"})
+    items = after["ds3d_batch_size_sum"] - before.get("ds3d_batch_size_sum", 0)
+    batches = after["ds3d_batch_size_count"] - before.get("ds3d_batch_size_count", 0)
+    assert items == 24 and batches < 24  # some batch held more than one request
+    requests = metric(url, "ds3d_requests_total", {"route": "/v1/lift", "status": "200"})
+    assert requests["ds3d_requests_total"] >= 24
+    assert metric(url, "ds3d_stage_seconds_count", {"stage": "retrieval"})
+
+
+def post_lift(url, body, **kw):
+    return httpx.post(f"{url}/v1/lift", json=body, **kw)
+
+
+def assert_error(resp: httpx.Response, status: int, code: str):
+    assert resp.status_code == status, resp.text
+    err = resp.json()["error"]
+    assert err["code"] == code and err["message"]
+
+
+def good_item(poses):
+    return {"joints_2d": poses[0].tolist()}
+
+
+def post_raw(url, path, content: bytes | str, ctype: str) -> httpx.Response:
+    return httpx.post(f"{url}{path}", content=content, headers={"content-type": ctype})
+
+
+def test_bad_lift_inputs_get_json_errors(url, poses):
+    j = poses[0].tolist()
+    json_t = "application/json"
+    assert_error(post_raw(url, "/v1/lift", b"{not json", json_t), 422, "invalid_json")
+    assert_error(post_raw(url, "/v1/lift", b"", json_t), 422, "invalid_request")
+    assert_error(post_raw(url, "/v1/lift", b"hi", "text/plain"), 415, "unsupported_media_type")
+    assert_error(post_lift(url, {"items": [{"joints_2d": j[:13]}]}), 422, "invalid_request")
+    xyz = [[*p, 0.0] for p in j]
+    assert_error(post_lift(url, {"items": [{"joints_2d": xyz}]}), 422, "invalid_request")
+    assert_error(post_lift(url, {"items": []}), 422, "invalid_request")
+    for bad in ("NaN", "Infinity", "-Infinity", "1e999"):
+        raw = '{"items": [{"joints_2d": [[' + bad + ", 1]" + ", [1, 1]" * 13 + "]}]}"
+        assert_error(post_raw(url, "/v1/lift", raw, json_t), 422, "invalid_request")
+    too_big = [[1e39, 1.0], *j[1:]]  # finite as a double, not as float32
+    assert_error(post_lift(url, {"items": [{"joints_2d": too_big}]}), 422, "invalid_pose")
+    # Bad neighbours did not spoil the service: a good item still gets its answer.
+    assert post_lift(url, {"items": [good_item(poses)]}).status_code == 200
+    assert httpx.get(f"{url}/readyz").status_code == 200
+
+
+def jpeg(size=(64, 48)) -> bytes:
+    buf = io.BytesIO()
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (*size[::-1], 3), dtype=np.uint8)).save(buf, "JPEG")
+    return buf.getvalue()
+
+
+def png_header(width: int, height: int) -> bytes:
+    """A tiny PNG file whose header claims width x height pixels."""
+
+    def chunk(tag, data):
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    idat = zlib.compress(b"\x00" * 64)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def post_image(url, data: bytes, ctype="image/jpeg", multipart=False):
+    if multipart:
+        return httpx.post(f"{url}/v1/pose", files={"image": ("x", data, ctype)})
+    return httpx.post(f"{url}/v1/pose", content=data, headers={"content-type": ctype})
+
+
+@pytest.mark.parametrize("multipart", [False, True])
+def test_bad_images_get_json_errors(url, multipart):
+    good = jpeg()
+    assert_error(post_image(url, b"", multipart=multipart), 422, "invalid_image")
+    assert_error(
+        post_image(url, b"just some text\n" * 10, multipart=multipart), 422, "invalid_image"
+    )
+    assert_error(post_image(url, good[: len(good) // 2], multipart=multipart), 422, "invalid_image")
+    bomb = png_header(50_000, 50_000)
+    assert len(bomb) < 200
+    resp = post_image(url, bomb, "image/png", multipart=multipart)
+    assert_error(resp, 422, "invalid_image")
+    assert "pixels" in resp.json()["error"]["message"]  # refused for its size, from the header
+    # Far over (refused on Content-Length) and just over (refused while reading).
+    for extra in (70_000, 1_000):
+        big = b"\xff\xd8\xff" + b"\0" * (MAX_IMAGE_BYTES + extra)
+        assert_error(post_image(url, big, multipart=multipart), 413, "payload_too_large")
+    assert httpx.get(f"{url}/healthz").status_code == 200
+
+
+def test_pose_wrong_content_type_and_missing_field(url):
+    assert_error(post_image(url, b"hello", "text/plain"), 415, "unsupported_media_type")
+    resp = httpx.post(f"{url}/v1/pose", json={"image": "x"})
+    assert_error(resp, 415, "unsupported_media_type")
+    resp = httpx.post(f"{url}/v1/pose", files={"other": ("x", jpeg())})
+    assert_error(resp, 422, "invalid_request")
+    resp = httpx.post(
+        f"{url}/v1/pose?bbox=[1,2]", content=jpeg(), headers={"content-type": "image/jpeg"}
+    )
+    assert_error(resp, 422, "invalid_request")
+
+
+def test_pose_on_a_valid_image(url, engine):
+    with PoseClient(url, retries=0) as client:
+        if engine.pipeline is None:
+            # The bundled models have no 2D stage: a clear 503, not a crash.
+            with pytest.raises(ServiceError) as info:
+                client.estimate(jpeg())
+            assert (info.value.status, info.value.code) == (503, "model_unavailable")
+        else:
+            res = client.estimate(jpeg())
+            assert res.joints_2d.shape == (14, 2) and res.joints_3d.shape == (14, 3)
+
+
+def test_full_queue_answers_503_at_once(engine, poses):
+    # The batch waits up to 2 s for company, so the first request's items stay queued.
+    with serve(engine, max_queue=4, max_batch_size=64, max_wait_ms=2000) as u:
+        first: list[httpx.Response] = []
+        waiter = threading.Thread(
+            target=lambda: first.append(post_lift(u, {"items": [good_item(poses)] * 4}))
+        )
+        waiter.start()
+        wait_for_depth(u, 4)
+        assert_error(httpx.get(f"{u}/readyz"), 503, "saturated")
+        t0 = time.perf_counter()
+        resp = post_lift(u, {"items": [good_item(poses)]})
+        assert time.perf_counter() - t0 < 1.0  # refused at once, not after the wait
+        assert_error(resp, 503, "overloaded")
+        assert resp.headers["retry-after"] == "1"
+        assert httpx.get(f"{u}/healthz").status_code == 200
+        # More items than the queue holds can never fit: 413, nothing to retry.
+        assert_error(post_lift(u, {"items": [good_item(poses)] * 5}), 413, "too_many_items")
+        waiter.join(30)
+        assert first[0].status_code == 200 and len(first[0].json()["items"]) == 4
+        assert httpx.get(f"{u}/readyz").status_code == 200
+
+
+def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses):
+    # The batch waits 300 ms for company, the deadline is 50 ms.
+    with serve(engine, max_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
+        assert_error(post_lift(u, {"items": [good_item(poses)]}), 504, "timeout")
+        assert httpx.get(f"{u}/healthz").status_code == 200
+        assert httpx.get(f"{u}/readyz").status_code == 200
+        counts = metric(u, "ds3d_requests_total", {"route": "/v1/lift", "status": "504"})
+        assert counts["ds3d_requests_total"] == 1
+
+
+def test_shutdown_answers_the_queued_requests(engine, poses):
+    results: list[int] = []
+
+    def call(u):
+        results.append(post_lift(u, {"items": [good_item(poses)]}, timeout=30).status_code)
+
+    with serve(engine, max_batch_size=64, max_wait_ms=1000) as u:
+        threads = [threading.Thread(target=call, args=(u,)) for _ in range(4)]
+        for t in threads:
+            t.start()
+        wait_for_depth(u, 4)  # all four wait in the queue for the batch to fill
+    # Leaving the block stopped the server: it drained the queue before exiting.
+    for t in threads:
+        t.join(30)
+    assert results == [200] * 4
