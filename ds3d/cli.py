@@ -11,7 +11,7 @@ import importlib
 import sys
 
 COMMAND_MODULES: tuple[str, ...] = (
-    "ds3d.mocap.commands",
+    "ds3d.lift_commands",
     "ds3d.image2d.commands",
 )
 

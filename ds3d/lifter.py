@@ -65,71 +65,107 @@ class LiftResult:
 class Lifter:
     """Load once, lift many: `Lifter.load().lift(joints_2d, visible, intrinsics)`."""
 
-    def __init__(self, database: PoseDatabase, config: LifterConfig = LifterConfig(),
-                 device: str | torch.device = "cpu", cache_indices: bool = True):  # fmt: skip
-        self.config = config
+    def __init__(
+        self,
+        database: PoseDatabase,
+        config: LifterConfig = LifterConfig(),
+        device: str | torch.device = "cpu",
+        cache_indices: bool = True,
+    ):
         self.device = torch.device(device)
         self.database = database
         self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
         self.database.poses = self.database.poses.to(self.device)
         self.database.rotations = self.database.rotations.to(self.device)
+        self.configure(config)
+        self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
+
+    def configure(self, config: LifterConfig) -> None:
+        """Change the algorithm parameters (not the index) of a loaded lifter."""
+        if config.index != self.retriever.config:
+            raise ValueError("the index settings are fixed when a Lifter is built")
+        self.config = config
         self.set_ids = [SET_NAMES.index(name) for name in config.joint_sets]
         masks = torch.zeros(len(SET_NAMES), NUM_JOINTS)
         for s, name in enumerate(SET_NAMES):
             masks[s, list(JOINT_SETS[name])] = 1
         self.set_masks = masks[self.set_ids].to(self.device)  # (S, 14)
-        self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
 
     @classmethod
-    def load(cls, model_dir: str | Path | None = None, device: str = "cpu",
-             config: LifterConfig = LifterConfig()) -> Lifter:  # fmt: skip
-        """The pose database under `model_dir`/posedb (default: the bundled models/)."""
+    def load(
+        cls,
+        model_dir: str | Path | None = None,
+        device: str = "cpu",
+        config: LifterConfig = LifterConfig(),
+        database: str = "posedb",
+    ) -> Lifter:
+        """The pose database `model_dir`/`database` (default: models/posedb, from Human3.6M;
+        models/posedb-cmu holds the CMU one)."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
-        return cls(PoseDatabase.load(directory / "posedb"), config, device)
+        return cls(PoseDatabase.load(directory / database), config, device)
 
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
         optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose."""
-        x = joints_2d_batch(joints_2d)
-        vis = visibility_batch(visible, len(x))
+        x = joints_2d_batch(joints_2d).to(self.device)
+        vis = visibility_batch(visible, len(x)).to(self.device)
         k = intrinsics_batch(intrinsics, len(x))
-        x, vis = x.to(self.device), vis.to(self.device)
-        k = None if k is None else k.to(self.device)
+        frame = image_frame(x, vis, None if k is None else k.to(self.device))
         timings: dict[str, float] = {}
         with torch.no_grad(), _timed(timings, "retrieval", self.device):
-            ids = self.retriever.search(x, self.config.neighbours)[:, self.set_ids]
-            candidates = self.database.candidates(ids.to(self.device))  # (B, S, K, 14, 3)
-        frame = image_frame(x, vis, k)
+            candidates = self.retrieve(x)
         with _timed(timings, "projection_fit", self.device):
             params, residuals = self.fit_projections(candidates, x, vis, frame)
         with torch.no_grad(), _timed(timings, "selection", self.device):
             kept, weights, kept_residuals = self.weight_neighbours(candidates, -residuals)
-            masks = self.set_masks * vis[:, None].float()  # (B, S, 14)
             if self.config.select_on_all_joints:
                 kept_residuals = projection_energy(
                     project(kept, params, frame.unsqueeze(1)), x[:, None], vis[:, None].float()
                 )
             energies = set_energy(kept, weights, kept_residuals, self.config.omega)
-            # A set with a hidden joint only counts when every set has one.
-            complete = (masks == self.set_masks).all(-1)
-            usable = complete | ~complete.any(-1, keepdim=True)
-            best = torch.where(usable, energies, torch.inf).argmin(-1)  # (B,)
-        rows = torch.arange(len(x), device=self.device)
+            best = torch.where(self.usable_sets(vis), energies, torch.inf).argmin(-1)
         with _timed(timings, "pose_fit", self.device):
-            pose = fit_pose(kept[rows, best], weights[rows, best], params[rows, best], x,
-                            masks[rows, best], frame, self.config.omega,
-                            self.config.pca_components, self.config.pose_iterations)  # fmt: skip
-        rotation = rotation_matrix(params[rows, best, :3])
-        oriented = pose @ rotation.transpose(-1, -2)
-        oriented = oriented - hip_midpoint(oriented)[:, None]
+            pose = self.fit_pose(kept, weights, params, x, vis, frame, best)
+        rows = torch.arange(len(x), device=self.device)
         return LiftResult(
-            joints_3d=oriented.detach().cpu(),
+            joints_3d=pose.detach().cpu(),
             joint_set=[self.config.joint_sets[i] for i in best.tolist()],
             energy=energies[rows, best].cpu(),
             set_energies=energies.cpu(),
             projection=params[rows, best].cpu(),
             timings_ms=timings,
         )
+
+    def retrieve(self, joints_2d: torch.Tensor) -> torch.Tensor:
+        """K neighbours per configured set, camera-oriented. joints_2d: (B, 14, 2) px.
+        Returns (B, S, K, 14, 3) mm."""
+        ids = self.retriever.search(joints_2d, self.config.neighbours)[:, self.set_ids]
+        return self.database.candidates(ids.to(self.device))
+
+    def usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
+        """(B, S) bool: a set with a hidden joint only counts when every set has one."""
+        masks = self.set_masks * visible[:, None].float()
+        complete = (masks == self.set_masks).all(-1)
+        return complete | ~complete.any(-1, keepdim=True)
+
+    def fit_pose(self, kept, weights, params, joints_2d, visible, frame, best) -> torch.Tensor:
+        """eq:energyMin2 on the chosen set `best` (B,) of each pose. kept: (B, S, K_w, 14, 3);
+        weights: (B, S, K_w); params: (B, S, 6); joints_2d: (B, 14, 2); visible: (B, 14).
+        Returns (B, 14, 3) mm, camera-oriented, root at the hip midpoint."""
+        rows = torch.arange(len(best), device=best.device)
+        pose = fit_pose(
+            kept[rows, best],
+            weights[rows, best],
+            params[rows, best],
+            joints_2d,
+            self.set_masks[best] * visible.float(),
+            frame,
+            self.config.omega,
+            self.config.pca_components,
+            self.config.pose_iterations,
+        )
+        oriented = pose @ rotation_matrix(params[rows, best, :3]).transpose(-1, -2)
+        return oriented - hip_midpoint(oriented)[:, None]
 
     def fit_projections(self, candidates, joints_2d, visible, frame, start=None):
         """eq:projerr1 for every (pose, set). candidates: (B, S, K, 14, 3); joints_2d: (B, 14, 2);

@@ -11,10 +11,21 @@ from __future__ import annotations
 import numpy as np
 
 JOINT_NAMES: tuple[str, ...] = (
-    "right_ankle", "right_knee", "right_hip", "left_hip", "left_knee", "left_ankle",
-    "right_wrist", "right_elbow", "right_shoulder", "left_shoulder", "left_elbow", "left_wrist",
-    "neck", "head_top",
-)  # fmt: skip
+    "right_ankle",
+    "right_knee",
+    "right_hip",
+    "left_hip",
+    "left_knee",
+    "left_ankle",
+    "right_wrist",
+    "right_elbow",
+    "right_shoulder",
+    "left_shoulder",
+    "left_elbow",
+    "left_wrist",
+    "neck",
+    "head_top",
+)
 NUM_JOINTS = len(JOINT_NAMES)
 
 R_ANKLE, R_KNEE, R_HIP, L_HIP, L_KNEE, L_ANKLE = range(6)
@@ -24,10 +35,21 @@ NECK, HEAD_TOP = 12, 13
 # Kinematic tree rooted at the neck (the PSM's root): PARENT[i] is the parent of joint i, -1 for
 # the root. The hips hang from the neck because LSP has no pelvis joint.
 PARENT: tuple[int, ...] = (
-    R_KNEE, R_HIP, NECK, NECK, L_HIP, L_KNEE,
-    R_ELBOW, R_SHOULDER, NECK, NECK, L_SHOULDER, L_ELBOW,
-    -1, NECK,
-)  # fmt: skip
+    R_KNEE,
+    R_HIP,
+    NECK,
+    NECK,
+    L_HIP,
+    L_KNEE,
+    R_ELBOW,
+    R_SHOULDER,
+    NECK,
+    NECK,
+    L_SHOULDER,
+    L_ELBOW,
+    -1,
+    NECK,
+)
 
 # Limbs (child, parent): the 13 edges of the kinematic tree; E_a compares their lengths.
 LIMBS: tuple[tuple[int, int], ...] = tuple((i, p) for i, p in enumerate(PARENT) if p >= 0)
@@ -42,7 +64,16 @@ JOINT_SETS: dict[str, tuple[int, ...]] = {
     "all": tuple(range(NUM_JOINTS)),
     # upper body, 10: wrists, elbows, shoulders, hips, neck, head
     "up": (
-        R_HIP, L_HIP, R_WRIST, R_ELBOW, R_SHOULDER, L_SHOULDER, L_ELBOW, L_WRIST, NECK, HEAD_TOP,
+        R_HIP,
+        L_HIP,
+        R_WRIST,
+        R_ELBOW,
+        R_SHOULDER,
+        L_SHOULDER,
+        L_ELBOW,
+        L_WRIST,
+        NECK,
+        HEAD_TOP,
     ),
     # lower body, 6: hips, knees, ankles
     "lw": (R_ANKLE, R_KNEE, R_HIP, L_HIP, L_KNEE, L_ANKLE),
@@ -72,10 +103,21 @@ H36M17_TO_LSP: tuple[int, ...] = (3, 2, 1, 4, 5, 6, 16, 15, 14, 11, 12, 13, 8, 1
 # eyes as children): the last entry names the joint whose frame places it, see
 # ds3d.data.cmu.head_top_offset.
 CMU_BVH_TO_LSP: tuple[str, ...] = (
-    "rFoot", "rShin", "rThigh", "lThigh", "lShin", "lFoot",
-    "rHand", "rForeArm", "rShldr", "lShldr", "lForeArm", "lHand",
-    "neck", "head",
-)  # fmt: skip
+    "rFoot",
+    "rShin",
+    "rThigh",
+    "lThigh",
+    "lShin",
+    "lFoot",
+    "rHand",
+    "rForeArm",
+    "rShldr",
+    "lShldr",
+    "lForeArm",
+    "lHand",
+    "neck",
+    "head",
+)
 
 
 def hip_midpoint(joints):

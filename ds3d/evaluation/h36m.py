@@ -21,7 +21,7 @@ from ds3d.skeleton import NUM_JOINTS, hip_midpoint
 
 
 @dataclass
-class TestCases:
+class ProtocolCases:
     """N test poses. joints_2d (N, 14, 2) px; joints_3d (N, 14, 3) mm in the camera frame, root
     at the hip midpoint; intrinsics (N, 3, 3); action (N,) names; camera (N,) 1-4."""
 
@@ -34,15 +34,15 @@ class TestCases:
     def __len__(self) -> int:
         return len(self.joints_2d)
 
-    def subset(self, index) -> TestCases:
-        return TestCases(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
+    def subset(self, index) -> ProtocolCases:
+        return ProtocolCases(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
 
-def test_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> TestCases:
+def protocol_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> ProtocolCases:
     """Every `stride`-th frame of every sequence of `subject`, four cameras each."""
     sequences = load_h36m_sequences((subject,))
     cameras = load_cameras()
-    parts: dict[str, list] = {f: [] for f in TestCases.__dataclass_fields__}
+    parts: dict[str, list] = {f: [] for f in ProtocolCases.__dataclass_fields__}
     for key, poses in sequences.items():
         frames = poses[::stride]
         for cam_id in (1, 2, 3, 4):
@@ -53,11 +53,12 @@ def test_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> TestCases:
             parts["intrinsics"].append(np.repeat(camera.intrinsics[None], len(frames), 0))
             parts["action"].append(np.full(len(frames), action_name(key.split("/")[1])))
             parts["camera"].append(np.full(len(frames), cam_id))
-    return TestCases(*(np.concatenate(parts[f]) for f in TestCases.__dataclass_fields__))
+    return ProtocolCases(*(np.concatenate(parts[f]) for f in ProtocolCases.__dataclass_fields__))
 
 
-def perturb(joints_2d: np.ndarray, noise_px: float = 0.0, outlier_px: float = 0.0,
-            seed: int = 0) -> np.ndarray:  # fmt: skip
+def perturb(
+    joints_2d: np.ndarray, noise_px: float = 0.0, outlier_px: float = 0.0, seed: int = 0
+) -> np.ndarray:
     """Gaussian noise of `noise_px` on every coordinate and/or one random joint per pose moved
     by `outlier_px` in a random direction. joints_2d: (N, 14, 2) px."""
     rng = np.random.default_rng(seed)
@@ -69,7 +70,7 @@ def perturb(joints_2d: np.ndarray, noise_px: float = 0.0, outlier_px: float = 0.
     return out.astype(np.float32)
 
 
-def lift_all(lifter, cases: TestCases, joints_2d: np.ndarray, batch_size: int = 64):
+def lift_all(lifter, cases: ProtocolCases, joints_2d: np.ndarray, batch_size: int = 64):
     """Lift every case in batches. Returns the 3D poses (N, 14, 3) and chosen sets (N,)."""
     poses, sets = [], []
     for start in range(0, len(cases), batch_size):
@@ -80,7 +81,7 @@ def lift_all(lifter, cases: TestCases, joints_2d: np.ndarray, batch_size: int = 
     return np.concatenate(poses), np.array(sets)
 
 
-def score(pred: np.ndarray, cases: TestCases, sets: np.ndarray | None = None) -> dict:
+def score(pred: np.ndarray, cases: ProtocolCases, sets: np.ndarray | None = None) -> dict:
     """Errors (mm) per action and overall (mean over frames) + how often each set was chosen."""
     errors = {
         "pose_error": rigid_error(pred, cases.joints_3d).numpy(),
@@ -99,7 +100,7 @@ def score(pred: np.ndarray, cases: TestCases, sets: np.ndarray | None = None) ->
     return report
 
 
-def evaluate(lifter, cases: TestCases, noise_px=0.0, outlier_px=0.0, seed=0, batch_size=64):
+def evaluate(lifter, cases: ProtocolCases, noise_px=0.0, outlier_px=0.0, seed=0, batch_size=64):
     """The protocol end to end for one input variant: a JSON-ready report."""
     joints_2d = perturb(cases.joints_2d, noise_px, outlier_px, seed)
     pred, sets = lift_all(lifter, cases, joints_2d, batch_size)

@@ -56,8 +56,9 @@ class CameraFrame:
     def repeat(self, times: int) -> CameraFrame:
         """Each problem `times` times in a row: leading dim B -> B * times."""
         k = None if self.intrinsics is None else self.intrinsics.repeat_interleave(times, 0)
-        return CameraFrame(k, self.centre.repeat_interleave(times, 0),
-                           self.spread.repeat_interleave(times, 0))  # fmt: skip
+        return CameraFrame(
+            k, self.centre.repeat_interleave(times, 0), self.spread.repeat_interleave(times, 0)
+        )
 
 
 def project(points: torch.Tensor, params: torch.Tensor, frame: CameraFrame) -> torch.Tensor:
@@ -100,7 +101,7 @@ def initial_params(
     c2 = (joints_2d * m).sum(-2) / count  # (..., 2) px
     c3 = (mean_pose * m).sum(-2) / count  # (..., 3) mm
     spread_2d = (((joints_2d - c2[..., None, :]) ** 2 * m).sum((-1, -2)) / count[..., 0]).sqrt()
-    spread_3d = (((mean_pose[..., :2] - c3[..., None, :2]) ** 2 * m).sum((-1, -2)) / count[..., 0])
+    spread_3d = ((mean_pose[..., :2] - c3[..., None, :2]) ** 2 * m).sum((-1, -2)) / count[..., 0]
     spread_3d = spread_3d.sqrt().clamp_min(1.0)
     zeros = torch.zeros_like(c2[..., :1])
     if frame.intrinsics is None:

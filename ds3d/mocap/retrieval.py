@@ -34,7 +34,7 @@ class IndexConfig:
 
     kind: str = "ivf"
     nlist: int = 1024
-    nprobe: int = 24
+    nprobe: int = 16
     storage: str = "f16"
 
     def factory_string(self) -> str:
@@ -65,8 +65,9 @@ def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int
         # k-means needs, and the seed makes the index reproducible.
         sample_poses = min(len(db.poses), max(1, 64 * config.nlist // db.num_views + 1))
         rng = np.random.default_rng(seed)
-        subset = PoseDatabase(db.poses[np.sort(rng.choice(len(db.poses), sample_poses, False))],
-                              db.rotations)  # fmt: skip
+        subset = PoseDatabase(
+            db.poses[np.sort(rng.choice(len(db.poses), sample_poses, False))], db.rotations
+        )
         index.train(np.concatenate(list(subset.projected_2d(joint_set))))
     for block in db.projected_2d(joint_set):
         index.add(block)

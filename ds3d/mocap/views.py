@@ -27,13 +27,21 @@ def view_rotations(
     ca, sa, ce, se = az.cos(), az.sin(), el.cos(), el.sin()
     one, zero = torch.ones_like(az), torch.zeros_like(az)
     rot_y = torch.stack(
-        [torch.stack([ca, zero, sa], -1), torch.stack([zero, one, zero], -1),
-         torch.stack([-sa, zero, ca], -1)], -2,
+        [
+            torch.stack([ca, zero, sa], -1),
+            torch.stack([zero, one, zero], -1),
+            torch.stack([-sa, zero, ca], -1),
+        ],
+        -2,
     )
     one, zero = torch.ones_like(el), torch.zeros_like(el)
     rot_x = torch.stack(
-        [torch.stack([one, zero, zero], -1), torch.stack([zero, ce, -se], -1),
-         torch.stack([zero, se, ce], -1)], -2,
+        [
+            torch.stack([one, zero, zero], -1),
+            torch.stack([zero, ce, -se], -1),
+            torch.stack([zero, se, ce], -1),
+        ],
+        -2,
     )
     return (rot_x[:, None] @ rot_y[None]).reshape(-1, 3, 3).float()
 
