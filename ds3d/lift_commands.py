@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ds3d.paths import MODELS_DIR
+from ds3d.skeleton import SET_NAMES
 
 DEDUPE_MM = 60.0  # measured: 40 mm doubles the database for no gain (docs/RESULTS.md)
 
@@ -48,6 +49,14 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--out", type=Path, help="JSON report")
     _model_options(p)
     p.set_defaults(func=eval_h36m)
+
+    p = benches.add_parser("retrieval", help="IVF recall@K against the exact (flat) index")
+    p.add_argument("--queries", type=int, default=256)
+    p.add_argument("--k", type=int, default=256)
+    p.add_argument("--nprobe", default="8,16,32")
+    p.add_argument("--out", type=Path, help="JSON report")
+    _model_options(p)
+    p.set_defaults(func=bench_retrieval)
 
     p = benches.add_parser("lift", help="poses per second and time per stage")
     p.add_argument("--batch-sizes", default="1,16,64")
@@ -215,5 +224,52 @@ def bench_lift(args) -> int:
         )
     report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     print(f"load {load_s:.1f} s, peak RSS {report['peak_rss_mb']} MB", file=sys.stderr)
+    _write(report, args.out)
+    return 0
+
+
+def bench_retrieval(args) -> int:
+    """Recall@k of the default IVF index against an exact flat index, per set, and the time per
+    query of each, on plausible queries (benchmark_poses plus 5 px of noise)."""
+    from ds3d.mocap.retrieval import IndexConfig, PoseRetriever
+
+    lifter = _load_lifter(args)
+    rng = np.random.default_rng(1)
+    queries = benchmark_poses(lifter, args.queries) + rng.normal(0, 5, (args.queries, 14, 2))
+    queries = torch.from_numpy(queries.astype(np.float32))
+    exact = PoseRetriever(lifter.database, IndexConfig(kind="flat", storage="f32"), cache=False)
+    start = time.perf_counter()
+    truth = exact.search(queries, args.k)
+    report = {
+        "k": args.k,
+        "queries": args.queries,
+        "flat_ms_per_query": round(1000 * (time.perf_counter() - start) / args.queries, 2),
+        "ivf": {},
+    }
+    del exact
+    ivf = lifter.retriever
+    for nprobe in (int(n) for n in args.nprobe.split(",")):
+        for index in ivf.indices:
+            index.nprobe = nprobe
+        start = time.perf_counter()
+        found = ivf.search(queries, args.k)
+        elapsed = time.perf_counter() - start
+        recall = {
+            name: float(
+                np.mean(
+                    [
+                        len(set(f.tolist()) & set(t.tolist())) / args.k
+                        for f, t in zip(found[:, s], truth[:, s], strict=True)
+                    ]
+                )
+            )
+            for s, name in enumerate(SET_NAMES)
+        }
+        report["ivf"][nprobe] = {
+            "ms_per_query": round(1000 * elapsed / args.queries, 2),
+            "recall": {k: round(v, 3) for k, v in recall.items()},
+        }
+        print(f"nprobe {nprobe}: {report['ivf'][nprobe]}", file=sys.stderr)
+    print(f"flat: {report['flat_ms_per_query']} ms/query (5 sets)", file=sys.stderr)
     _write(report, args.out)
     return 0

@@ -41,8 +41,8 @@ class LifterConfig:
     pca_components: int = 18
     joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
     omega: EnergyWeights = field(default_factory=EnergyWeights)
-    projection_iterations: int = 10
-    pose_iterations: int = 30
+    projection_iterations: int = 5
+    pose_iterations: int = 15
     select_on_all_joints: bool = True
     index: IndexConfig = field(default_factory=IndexConfig)
 
@@ -118,12 +118,7 @@ class Lifter:
             params, residuals = self.fit_projections(candidates, x, vis, frame)
         with torch.no_grad(), _timed(timings, "selection", self.device):
             kept, weights, kept_residuals = self.weight_neighbours(candidates, -residuals)
-            if self.config.select_on_all_joints:
-                kept_residuals = projection_energy(
-                    project(kept, params, frame.unsqueeze(1)), x[:, None], vis[:, None].float()
-                )
-            energies = set_energy(kept, weights, kept_residuals, self.config.omega)
-            best = torch.where(self.usable_sets(vis), energies, torch.inf).argmin(-1)
+            energies, best = self.choose_set(kept, weights, kept_residuals, params, x, vis, frame)
         with _timed(timings, "pose_fit", self.device):
             pose = self.fit_pose(kept, weights, params, x, vis, frame, best)
         rows = torch.arange(len(x), device=self.device)
@@ -141,6 +136,19 @@ class Lifter:
         Returns (B, S, K, 14, 3) mm."""
         ids = self.retriever.search(joints_2d, self.config.neighbours)[:, self.set_ids]
         return self.database.candidates(ids.to(self.device))
+
+    def choose_set(self, kept, weights, kept_residuals, params, joints_2d, visible, frame):
+        """s^ by eq:energyS. kept: (B, S, K_w, 14, 3); weights, kept_residuals: (B, S, K_w);
+        params: (B, S, 6); joints_2d: (B, 14, 2); visible: (B, 14). Returns the energies (B, S)
+        and the chosen set (B,) among the usable ones."""
+        if self.config.select_on_all_joints:
+            kept_residuals = projection_energy(
+                project(kept, params, frame.unsqueeze(1)),
+                joints_2d[:, None],
+                visible[:, None].float(),
+            )
+        energies = set_energy(kept, weights, kept_residuals, self.config.omega)
+        return energies, torch.where(self.usable_sets(visible), energies, torch.inf).argmin(-1)
 
     def usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
         """(B, S) bool: a set with a hidden joint only counts when every set has one."""

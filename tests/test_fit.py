@@ -96,7 +96,8 @@ def test_weighted_pca_ignores_zero_weight_poses():
     outlier[:, -1] += 1000
     weights = torch.ones(1, 10)
     weights[:, -1] = 0
-    mean, basis = weighted_pca(outlier, weights, components=4)
+    mean, basis, sigma = weighted_pca(outlier, weights, components=4)
+    assert bool((sigma[:, :-1] >= sigma[:, 1:]).all())
     torch.testing.assert_close(mean, poses[:, :9].flatten(-2).mean(1), atol=1e-3, rtol=0)
     torch.testing.assert_close(
         basis @ basis.transpose(-1, -2), torch.eye(4)[None], atol=1e-5, rtol=0

@@ -36,12 +36,22 @@ def normalised_weights(weights: torch.Tensor) -> torch.Tensor:
     return weights / weights.sum(-1, keepdim=True).clamp_min(1e-12)
 
 
+def weighted_robust_distance(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor):
+    """sum_k w_k robust(||a_m - b_k||^2) for vectors a: (..., M, D), b: (..., K, D).
+
+    The squared distances come from one matrix product (|a|^2 + |b|^2 - 2 a.b), which is far
+    cheaper than materialising every difference and, unlike cdist, has a finite gradient at zero.
+    """
+    squared = (
+        (a * a).sum(-1)[..., :, None] + (b * b).sum(-1)[..., None, :] - 2 * a @ b.transpose(-1, -2)
+    ).clamp_min(0)  # (..., M, K)
+    return (robust(squared) * normalised_weights(weights)[..., None, :]).sum(-1)
+
+
 def retrieval_energy(poses: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor):
     """E_r: closeness to the retrieved poses. poses: (..., M, 14, 3) mm; neighbours:
     (..., K, 14, 3) mm; weights: (..., K). Returns (..., M), mm^(1/2)."""
-    diff = poses[..., :, None, :, :] - neighbours[..., None, :, :, :]  # (..., M, K, 14, 3)
-    distance = robust((diff**2).sum((-1, -2)))  # (..., M, K)
-    return (distance * normalised_weights(weights)[..., None, :]).sum(-1)
+    return weighted_robust_distance(poses.flatten(-2), neighbours.flatten(-2), weights)
 
 
 def limb_lengths(poses: torch.Tensor) -> torch.Tensor:
@@ -52,6 +62,4 @@ def limb_lengths(poses: torch.Tensor) -> torch.Tensor:
 
 def limb_energy(poses: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor):
     """E_a: anthropometric closeness of limb lengths. Shapes as retrieval_energy."""
-    diff = limb_lengths(poses)[..., :, None, :] - limb_lengths(neighbours)[..., None, :, :]
-    distance = robust((diff**2).sum(-1))  # (..., M, K)
-    return (distance * normalised_weights(weights)[..., None, :]).sum(-1)
+    return weighted_robust_distance(limb_lengths(poses), limb_lengths(neighbours), weights)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from ds3d.fit.camera import CameraFrame, initial_params, project
-from ds3d.fit.energy import limb_energy, projection_energy, retrieval_energy
+from ds3d.fit.energy import limb_lengths, projection_energy, weighted_robust_distance
 from ds3d.fit.lbfgs import minimize
 
 
@@ -46,14 +46,16 @@ def fit_projection(
 
 
 def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
-    """poses: (B, K, 14, 3); weights: (B, K) >= 0. Returns mean (B, 42) and basis (B, C, 42),
-    C = min(components, K, 42), rows orthonormal, ordered by weighted variance."""
+    """poses: (B, K, 14, 3); weights: (B, K) >= 0. Returns mean (B, 42), basis (B, C, 42) with
+    orthonormal rows ordered by weighted variance, and the standard deviation along each (B, C)
+    mm; C = min(components, K, 42)."""
     flat = poses.flatten(-2)
     w = weights / weights.sum(-1, keepdim=True).clamp_min(1e-12)
     mean = (w[..., None] * flat).sum(-2)
     centred = (flat - mean[..., None, :]) * w.sqrt()[..., None]
-    _, _, vh = torch.linalg.svd(centred, full_matrices=False)
-    return mean, vh[..., : min(components, vh.shape[-2]), :]
+    _, sigma, vh = torch.linalg.svd(centred, full_matrices=False)
+    c = min(components, vh.shape[-2])
+    return mean, vh[..., :c, :], sigma[..., :c]
 
 
 @dataclass(frozen=True)
@@ -82,18 +84,22 @@ def fit_pose(
     chosen projection (fixed); joints_2d: (B, 14, 2) px; mask: (B, 14) float, the joints E_p uses.
     Returns the pose (B, 14, 3) mm in the neighbours' orientation.
     """
-    mean, basis = weighted_pca(neighbours, weights, components)
+    mean, basis, sigma = weighted_pca(neighbours, weights, components)
+    # Coefficients in standard deviations: every direction has the same scale for L-BFGS.
+    scaled_basis = basis * sigma.clamp_min(1e-3)[..., None]
+    neighbour_vectors = neighbours.flatten(-2)  # constant: computed once, not per evaluation
+    neighbour_limbs = limb_lengths(neighbours)
 
     def pose_of(coefficients: torch.Tensor) -> torch.Tensor:
-        return (mean + (coefficients[:, None, :] @ basis)[:, 0]).reshape(-1, 14, 3)
+        return (mean + (coefficients[:, None, :] @ scaled_basis)[:, 0]).reshape(-1, 14, 3)
 
     def energy(coefficients: torch.Tensor) -> torch.Tensor:
         pose = pose_of(coefficients)[:, None]  # (B, 1, 14, 3)
         e_p = projection_energy(project(pose, params, frame), joints_2d, mask)[:, 0]
-        e_r = retrieval_energy(pose, neighbours, weights)[:, 0]
-        e_a = limb_energy(pose, neighbours, weights)[:, 0]
+        e_r = weighted_robust_distance(pose.flatten(-2), neighbour_vectors, weights)[:, 0]
+        e_a = weighted_robust_distance(limb_lengths(pose), neighbour_limbs, weights)[:, 0]
         return omega.projection * e_p + omega.retrieval * e_r + omega.anthropometric * e_a
 
-    start = mean.new_zeros(len(mean), basis.shape[-2])
+    start = mean.new_zeros(len(mean), scaled_basis.shape[-2])
     coefficients, _ = minimize(energy, start, iterations=iterations)
     return pose_of(coefficients)
