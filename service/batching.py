@@ -3,9 +3,12 @@ batch function on an executor, off the event loop.
 
 A batch closes when it holds `max_batch_size` items, or when its oldest item has waited
 `max_wait_s` (timed from that item's arrival, so items that queued while the worker was busy go
-out at once). Each item gets its own outcome: when the batch function raises, the items of that
-batch are run again one by one, so that one bad item fails alone and its neighbours still get
-their results.
+out at once). Items whose request has given up, or that would be answered only after their
+deadline (judged by the smoothed time of recent batches), are dropped with DeadlineExceeded
+instead of being computed: under overload the worker spends its time on answers still wanted.
+
+Each item gets its own outcome: when the batch function raises, the items of that batch are run
+again one by one, so that one bad item fails alone and its neighbours still get their results.
 """
 
 from __future__ import annotations
@@ -53,12 +56,14 @@ class _Job(Generic[T, R]):
 
 @dataclass
 class BatchStats:
-    """What the worker reports after each batch: its size and the seconds the batch function
-    took (all of its calls, the one-by-one reruns included)."""
+    """What the worker reports after each batch: its size, the seconds the batch function took
+    (all of its calls, the one-by-one reruns included), each item's wait, and how many items it
+    dropped for their deadline (a report with size 0 when it dropped items and ran nothing)."""
 
     size: int
     seconds: float
     queue_wait_s: list[float] = field(default_factory=list)
+    dropped: int = 0  # items dropped for their deadline while this batch was formed
 
 
 class MicroBatcher(Generic[T, R]):
@@ -90,6 +95,7 @@ class MicroBatcher(Generic[T, R]):
         self._pending: collections.deque[_Job[T, R]] = collections.deque()
         self._wakeup = asyncio.Event()
         self._closing = False
+        self._batch_estimate_s = 0.0
         self._worker: asyncio.Task[None] | None = None
 
     @property
@@ -178,20 +184,28 @@ class MicroBatcher(Generic[T, R]):
                     await asyncio.wait_for(self._wakeup.wait(), remaining)
                 except TimeoutError:
                     break
-            batch = [self._pending.popleft() for _ in range(min(self.max_batch_size, self.depth))]
             now = loop.time()
-            live = []
-            for job in batch:
+            live: list[_Job[T, R]] = []
+            dropped = 0
+            while self._pending and len(live) < self.max_batch_size:
+                job = self._pending.popleft()
                 if job.future.done():  # its request gave up (deadline) already
-                    continue
-                if now >= job.deadline:
-                    job.future.set_exception(DeadlineExceeded("deadline passed in the queue"))
-                    continue
-                live.append(job)
+                    dropped += 1
+                elif now + self._batch_estimate_s >= job.deadline:
+                    # It would be answered after its request gave up: computing it would only
+                    # slow down the items behind it.
+                    job.future.set_exception(
+                        DeadlineExceeded("would not finish before its deadline")
+                    )
+                    dropped += 1
+                else:
+                    live.append(job)
             if live:
-                await self._run(live, now)
+                await self._run(live, now, dropped)
+            elif dropped and self._on_batch is not None:
+                self._on_batch(BatchStats(0, 0.0, [], dropped))
 
-    async def _run(self, jobs: list[_Job[T, R]], started: float) -> None:
+    async def _run(self, jobs: list[_Job[T, R]], started: float, dropped: int) -> None:
         loop = asyncio.get_running_loop()
         t0 = time.perf_counter()
         try:
@@ -207,6 +221,12 @@ class MicroBatcher(Generic[T, R]):
             else:
                 outcomes = [await self._run_one(loop, job.item) for job in jobs]
         seconds = time.perf_counter() - t0
+        # Smoothed batch time: how long an item picked now will take at least to be answered.
+        self._batch_estimate_s = (
+            seconds
+            if self._batch_estimate_s == 0.0
+            else 0.7 * self._batch_estimate_s + 0.3 * seconds
+        )
         for job, (ok, value) in zip(jobs, outcomes, strict=True):
             if job.future.done():
                 continue
@@ -215,7 +235,8 @@ class MicroBatcher(Generic[T, R]):
             else:
                 job.future.set_exception(value)
         if self._on_batch is not None:
-            self._on_batch(BatchStats(len(jobs), seconds, [started - j.enqueued for j in jobs]))
+            waits = [started - j.enqueued for j in jobs]
+            self._on_batch(BatchStats(len(jobs), seconds, waits, dropped))
 
     async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> tuple[bool, object]:
         try:

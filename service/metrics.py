@@ -57,6 +57,12 @@ class Metrics:
             buckets=LATENCY_BUCKETS_S,
             registry=self.registry,
         )
+        self.dropped = Counter(
+            "ds3d_deadline_dropped_items",
+            "Items not computed because their deadline had passed or would pass first, by queue",
+            ["queue"],
+            registry=self.registry,
+        )
         self.stage_seconds = Histogram(
             "ds3d_stage_seconds",
             "Model time per stage, one observation per batch",
@@ -73,6 +79,9 @@ class Metrics:
         """An on_batch callback for the MicroBatcher of `queue`."""
 
         def observe(stats: BatchStats) -> None:
+            self.dropped.labels(queue).inc(stats.dropped)
+            if stats.size == 0:
+                return
             self.batch_size.labels(queue).observe(stats.size)
             self.batch_seconds.labels(queue).observe(stats.seconds)
             for wait in stats.queue_wait_s:

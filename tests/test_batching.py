@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -177,3 +178,28 @@ def test_close_drains_the_queue_then_refuses():
         return await asyncio.gather(*tasks)
 
     assert run(main()) == [0.0, 1.0, 4.0, 9.0, 16.0]
+
+
+def test_an_item_that_cannot_make_its_deadline_is_not_computed():
+    fn, stats = Squares(), []
+
+    def slow(xs):
+        time.sleep(0.3)
+        return fn(xs)
+
+    async def main():
+        b = make(slow, stats, max_batch_size=1, max_wait_s=0.0)
+        b.start()
+        assert await b.submit(1.0, 5) == 1.0  # teaches the batcher that a batch takes ~0.3 s
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(DeadlineExceeded):
+            await b.submit(2.0, 0.2)
+        waited = loop.time() - t0
+        await b.close(5)
+        return waited
+
+    waited = run(main())
+    assert waited < 0.15  # refused at pick-up, not at the deadline
+    assert fn.batches == [[1.0]]
+    assert sum(s.dropped for s in stats) == 1

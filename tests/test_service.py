@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import socket
 import struct
 import threading
@@ -302,3 +303,15 @@ def test_shutdown_answers_the_queued_requests(engine, poses):
     for t in threads:
         t.join(30)
     assert results == [200] * 4
+
+
+def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
+    from service import loadtest
+
+    args = [url, "--concurrency", "2", "--duration", "1", "--out", str(tmp_path), "--name", "t"]
+    assert loadtest.main(args) == 0
+    report = json.loads((tmp_path / "t.json").read_text())
+    assert report["status_counts"].get("200", 0) >= 1 and report["health_after"]["/healthz"] == 200
+    assert report["latency_ms_ok"]["p50"] > 0 and (tmp_path / "t.png").stat().st_size > 0
+    with pytest.raises(SystemExit):
+        loadtest.parse_args(["http://example.com:8000"])  # only local targets
