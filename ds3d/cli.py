@@ -13,6 +13,7 @@ import sys
 COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.lift_commands",
     "ds3d.image2d.commands",
+    "ds3d.pipeline_commands",
 )
 
 

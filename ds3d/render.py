@@ -1,0 +1,82 @@
+"""Pictures of a result, after the paper's qualitative figure: the image with the 2D pose, and
+the 3D pose from two viewpoints (the camera's, and from the person's side).
+
+Matplotlib's object API on the Agg canvas: no display, no pyplot global state (safe in threads).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mpl_toolkits.mplot3d  # noqa: F401  (registers the "3d" projection)
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ds3d.skeleton import HEAD_TOP, JOINT_NAMES, LIMBS, NECK
+
+RIGHT, LEFT, CENTRE = "tab:red", "tab:blue", "tab:green"
+
+
+def limb_colour(child: int) -> str:
+    """The person's right side red, left side blue, neck and head green."""
+    if child in (NECK, HEAD_TOP):
+        return CENTRE
+    return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT
+
+
+def draw_2d(ax, image: np.ndarray, joints_2d: np.ndarray, initial: np.ndarray | None = None):
+    """image: (H, W, 3) uint8; joints_2d: (14, 2) px; initial: optional (14, 2) px, drawn thin
+    and grey under the refined pose."""
+    ax.imshow(image)
+    if initial is not None:
+        for child, parent in LIMBS:
+            pts = initial[[child, parent]]
+            ax.plot(pts[:, 0], pts[:, 1], color="0.85", lw=1, ls="--")
+    for child, parent in LIMBS:
+        pts = joints_2d[[child, parent]]
+        ax.plot(pts[:, 0], pts[:, 1], color=limb_colour(child), lw=2.5)
+    ax.scatter(joints_2d[:, 0], joints_2d[:, 1], s=8, c="white", zorder=3)
+    ax.set_xlim(-0.5, image.shape[1] - 0.5)
+    ax.set_ylim(image.shape[0] - 0.5, -0.5)
+    ax.axis("off")
+
+
+def draw_3d(ax, joints_3d: np.ndarray, azimuth: float, title: str):
+    """joints_3d: (14, 3) mm, camera-oriented (x right, y down, z away from the camera); drawn
+    with the up axis up, seen from `azimuth` degrees around it (-90: the camera's view)."""
+    x, depth, up = joints_3d[:, 0], joints_3d[:, 2], -joints_3d[:, 1]
+    for child, parent in LIMBS:
+        idx = [child, parent]
+        ax.plot(x[idx], depth[idx], up[idx], color=limb_colour(child), lw=2.5)
+    centre = np.array([x.mean(), depth.mean(), up.mean()])
+    radius = max(np.ptp(x), np.ptp(depth), np.ptp(up), 1.0) / 2
+    for axis, c in zip("xyz", centre, strict=True):
+        getattr(ax, f"set_{axis}lim")(c - radius, c + radius)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=10, azim=azimuth)
+    ax.set_xticklabels([])
+    ax.set_yticklabels([])
+    ax.set_zticklabels([])
+    ax.set_title(title, fontsize=9)
+
+
+def render(
+    path: str | Path,
+    image: np.ndarray,
+    joints_2d: np.ndarray,
+    joints_3d: np.ndarray,
+    initial_2d: np.ndarray | None = None,
+    caption: str = "",
+) -> None:
+    """Write a PNG: the image with the 2D pose (px, (14, 2)) and the 3D pose (mm, (14, 3),
+    camera-oriented) seen from the camera and from the side."""
+    fig = Figure(figsize=(9, 3.4), dpi=100)
+    FigureCanvasAgg(fig)
+    draw_2d(fig.add_subplot(1, 3, 1), image, np.asarray(joints_2d), initial_2d)
+    draw_3d(fig.add_subplot(1, 3, 2, projection="3d"), np.asarray(joints_3d), -90, "camera view")
+    draw_3d(fig.add_subplot(1, 3, 3, projection="3d"), np.asarray(joints_3d), 0, "side view")
+    if caption:
+        fig.suptitle(caption, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)

@@ -1,0 +1,198 @@
+"""ds3d.Pipeline end to end on real LSP images, with a small 2D model trained here (seconds) and
+the bundled pose database; plus the bundled default model as a user gets it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from ds3d.cli import main as cli
+from ds3d.data.lsp import load_lsp
+from ds3d.image2d.estimator import LOG_EPS, Estimate2D
+from ds3d.image_io import read_image
+from ds3d.lifter import LifterConfig
+from ds3d.paths import MODELS_DIR
+from ds3d.pipeline import (
+    Pipeline,
+    PipelineConfig,
+    cells_to_image,
+    image_to_cells,
+    neighbour_scores,
+    search_window,
+)
+from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
+
+
+@pytest.fixture(scope="module")
+def model_dir(data_dir, tmp_path_factory):
+    """A --small 2D model beside a link to the bundled pose database."""
+    out = tmp_path_factory.mktemp("models")
+    assert cli(["train-2d", "--small", "--no-eval", "--out", str(out / "image2d")]) == 0
+    (out / "posedb").symlink_to(MODELS_DIR / "posedb")
+    return out
+
+
+@pytest.fixture(scope="module")
+def pipeline(model_dir):
+    return Pipeline.load(model_dir)
+
+
+@pytest.fixture(scope="module")
+def images(data_dir):
+    paths = load_lsp(split="test").image_paths[:4]
+    return [read_image(p) for p in paths]
+
+
+def test_real_image_gives_finite_poses_of_the_right_shapes(pipeline, images):
+    res = pipeline.estimate(images[:1])
+    assert res.joints_2d.shape == res.joints_2d_initial.shape == (1, NUM_JOINTS, 2)
+    assert res.joints_2d_iterations.shape == (1, 2, NUM_JOINTS, 2)
+    assert res.joints_3d.shape == (1, NUM_JOINTS, 3) and res.confidence.shape == (1, NUM_JOINTS)
+    for t in (res.joints_2d, res.joints_3d, res.confidence, res.psm_energy):
+        assert bool(torch.isfinite(t).all())
+    assert bool(((res.confidence >= 0) & (res.confidence <= 1)).all())
+    torch.testing.assert_close(
+        (res.joints_3d[:, R_HIP] + res.joints_3d[:, L_HIP]) / 2,
+        torch.zeros(1, 3),
+        atol=1e-3,
+        rtol=0,
+    )
+    # a person-sized skeleton: 1-2.5 m from the ankles to the head top
+    assert 1000 < float(res.joints_3d[0, :, 1].max() - res.joints_3d[0, :, 1].min()) < 2500
+    h, w = images[0].shape[:2]
+    assert bool(
+        (res.joints_2d[..., 0].abs() < 2 * w).all() & (res.joints_2d[..., 1].abs() < 2 * h).all()
+    )
+    assert res.joint_set[0] in SET_NAMES and res.iterations == 2
+    assert {
+        "2d_traversal",
+        "retrieval",
+        "projection_fit",
+        "refinement",
+        "pose_fit",
+        "total",
+    } <= set(res.timings_ms)
+
+
+def test_further_iterations_never_raise_the_psm_energy(pipeline, images):
+    res = pipeline.estimate(images, iterations=3)
+    energy = res.psm_energy
+    assert energy.shape == (len(images), 3)
+    assert bool((energy[:, 1:] <= energy[:, :-1]).all()), energy
+    # the answer is the pose of the last (best) energy
+    torch.testing.assert_close(res.joints_2d, res.joints_2d_iterations[:, -1])
+
+
+def test_neighbour_weights_follow_eq_wt_and_eq_wtn(pipeline):
+    gen = torch.Generator().manual_seed(0)
+    b, s, k, h, w = 2, 5, 40, 20, 30
+    unaries = torch.log(torch.rand(b, NUM_JOINTS, h, w, generator=gen) + LOG_EPS)
+    # cell (u, v) is image pixel (2u + 1, 3v - 2)
+    affine = torch.tensor([[2.0, 0.0, 1.0], [0.0, 3.0, -2.0]]).expand(b, 2, 3)
+    est = dataclasses.replace(
+        pipeline.estimator.estimate([np.zeros((60, 40, 3), np.uint8)] * b),
+        unaries=unaries,
+        map_to_image=affine,
+    )
+    cells = torch.stack(
+        [
+            torch.randint(0, w, (b, s, k, NUM_JOINTS), generator=gen),
+            torch.randint(0, h, (b, s, k, NUM_JOINTS), generator=gen),
+        ],
+        -1,
+    )
+    points = cells_to_image(cells.float().view(b, -1, 2), affine).view(b, s, k, NUM_JOINTS, 2)
+    torch.testing.assert_close(
+        image_to_cells(points.view(b, -1, 2), affine).view(cells.shape), cells.float()
+    )
+    scores = neighbour_scores(est, points)
+    joint = torch.arange(NUM_JOINTS)
+    want = torch.stack(
+        [unaries[i][joint, cells[i, ..., 1], cells[i, ..., 0]].sum(-1) for i in range(b)]
+    )  # eq:wt at grid points: the sum of the unaries at the joints
+    torch.testing.assert_close(scores, want, atol=1e-4, rtol=0)
+
+    pipeline.lifter.configure(LifterConfig(neighbours=k, weighted_neighbours=16))
+    try:
+        candidates = torch.randn(b, s, k, NUM_JOINTS, 3, generator=gen)
+        kept, weights, _ = pipeline.lifter.weight_neighbours(candidates, scores)
+    finally:
+        pipeline.lifter.configure(LifterConfig())
+    top, index = scores.topk(16, dim=-1)
+    torch.testing.assert_close(kept, torch.take_along_dim(candidates, index[..., None, None], 2))
+    low, high = top.amin(-1, keepdim=True), top.amax(-1, keepdim=True)
+    torch.testing.assert_close(weights, (top - low) / (high - low))  # eq:wtn
+    assert bool((weights.amax(-1) == 1).all() & (weights.amin(-1) == 0).all())
+
+
+def test_search_window_reads_cells_and_pads_beyond_the_grid():
+    unaries = torch.arange(4 * 5, dtype=torch.float32).view(1, 4, 5).expand(NUM_JOINTS, 4, 5)
+    cells = torch.tensor([[1.2, 0.5], [3.0, 2.0]]).repeat(NUM_JOINTS // 2, 1)[None]  # (1, 14, 2)
+    window, origin = search_window(unaries, cells, margin=1)
+    assert origin.tolist() == [0, -1]  # u from floor(1.2) - 1, v from floor(0.5) - 1
+    assert window.shape == (NUM_JOINTS, 5, 5)  # v -1..3, u 0..4
+    assert bool((window[:, 0] == np.log(LOG_EPS)).all())  # row v = -1 lies above the grid
+    torch.testing.assert_close(window[:, 1:], unaries[:, 0:4, 0:5])
+
+
+def _batch(estimates: list[Estimate2D]) -> Estimate2D:
+    """One-image estimates as one batch, unaries padded as the 2D stage pads them."""
+    h = max(e.unaries.shape[2] for e in estimates)
+    w = max(e.unaries.shape[3] for e in estimates)
+    unaries = torch.full((len(estimates), NUM_JOINTS, h, w), float(np.log(LOG_EPS)))
+    for i, e in enumerate(estimates):
+        unaries[i, :, : e.unaries.shape[2], : e.unaries.shape[3]] = e.unaries[0]
+    fields = [f.name for f in dataclasses.fields(Estimate2D)]
+    cat = {
+        f: torch.cat([getattr(e, f) for e in estimates])
+        for f in fields
+        if f != "unaries" and isinstance(getattr(estimates[0], f), torch.Tensor)
+    }
+    return dataclasses.replace(estimates[0], unaries=unaries, **cat)
+
+
+def test_batch_results_equal_one_by_one_results(pipeline, images):
+    # Given the same 2D stage output (whose own batching is the 2D stage's to test), every step
+    # after it treats each image alone.
+    singles = [pipeline.estimator.estimate([image]) for image in images[:3]]
+    batch = pipeline.lift_estimate(_batch(singles))
+    for i, single_estimate in enumerate(singles):
+        single = pipeline.lift_estimate(single_estimate)
+        torch.testing.assert_close(single.joints_2d[0], batch.joints_2d[i], atol=1e-3, rtol=0)
+        torch.testing.assert_close(single.psm_energy[0], batch.psm_energy[i])
+        torch.testing.assert_close(single.joints_3d[0], batch.joints_3d[i], atol=0.5, rtol=0)
+        assert single.joint_set[0] == batch.joint_set[i]
+
+
+def test_energy_selection_and_single_set_variants_run(pipeline, images):
+    pipeline.config = PipelineConfig(iterations=1, selection="energy")
+    pipeline.lifter.configure(LifterConfig(joint_sets=("all",), weighting=False))
+    try:
+        res = pipeline.estimate(images[:2])
+    finally:
+        pipeline.config = PipelineConfig()
+        pipeline.lifter.configure(LifterConfig())
+    assert res.joint_set == ["all", "all"] and res.iterations == 1
+    assert bool(torch.isfinite(res.joints_3d).all())
+
+
+def test_predict_command_writes_json_and_a_picture(model_dir, data_dir, tmp_path):
+    image = load_lsp(split="test").image_paths[0]
+    out, png = tmp_path / "result.json", tmp_path / "pose.png"
+    args = ["predict", str(image), "--bbox", "5,5,90,150", "--iterations", "1", "--out", str(out)]
+    assert cli([*args, "--render", str(png), "--model-dir", str(model_dir)]) == 0
+    report = json.loads(out.read_text())
+    (item,) = report["items"]
+    assert np.asarray(item["joints_3d"]).shape == (NUM_JOINTS, 3) and item["iterations"] == 1
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bundled_default_model_runs(images):
+    if not (MODELS_DIR / "image2d" / "manifest.json").is_file():
+        pytest.fail("the bundled 2D model models/image2d is missing")
+    res = Pipeline.load().estimate(images[:1], iterations=1)
+    assert bool(torch.isfinite(res.joints_3d).all())
