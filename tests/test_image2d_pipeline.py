@@ -12,13 +12,19 @@ from ds3d.errors import InvalidImage
 from ds3d.image2d import commands
 from ds3d.image2d.estimator import (
     LOG_EPS,
+    Estimate2D,
     EstimatorParams,
     PoseEstimator2D,
+    _person_centric,
+    _unmirror,
     context_channels,
+    resize_image,
     valid_cells,
 )
 from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
+from ds3d.image2d.train import faces_camera, observer_centric
 from ds3d.paths import data_root
+from ds3d.skeleton import FLIP
 
 needs_data = pytest.mark.skipif(
     not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
@@ -85,6 +91,7 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert [f.n_trees for f in est.layers] == [3, 3]
     assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
     assert est.mixtures.n_components == 15
+    assert est.params.observer_labels and est.facing.n_classes == 2
 
 
 @needs_data
@@ -129,3 +136,50 @@ def test_estimate_rejects_bad_inputs():
         est.estimate([np.zeros((10, 10), dtype=np.uint8)])
     with pytest.raises(ValueError):
         est.estimate([np.zeros((10, 10, 3), dtype=np.uint8)], bboxes=[(5, 5, 2, 2)])
+
+
+def test_observer_centric_labels_follow_the_image_sides():
+    joints = np.zeros((14, 2), dtype=np.float32)
+    joints[:, 0] = np.arange(14)  # distinct x per joint
+    joints[8, 0], joints[9, 0] = 50, 40  # right shoulder right of the left: faces away
+    joints[2, 0], joints[3, 0] = 10, 20  # hips as if facing the camera
+    visible = np.arange(14) % 2 == 0
+    assert not faces_camera(joints)
+    obs, vis = observer_centric(joints, visible)
+    arm_r, arm_l = [6, 7, 8], [11, 10, 9]
+    np.testing.assert_array_equal(obs[arm_r], joints[arm_l])  # arms swapped
+    np.testing.assert_array_equal(vis[arm_l], visible[arm_r])
+    np.testing.assert_array_equal(obs[:6], joints[:6])  # legs kept
+    assert faces_camera(obs)
+    again, _ = observer_centric(obs, vis)
+    np.testing.assert_array_equal(again, obs)
+
+
+def test_faces_away_swaps_left_and_right_at_the_end():
+    est = Estimate2D(
+        torch.arange(2 * 14 * 2, dtype=torch.float32).reshape(2, 14, 2),
+        torch.arange(28, dtype=torch.float32).reshape(2, 14),
+        torch.zeros(2),
+        torch.arange(2 * 14 * 4, dtype=torch.float32).reshape(2, 14, 2, 2),
+        torch.zeros(2, 2, 3),
+        torch.ones(2),
+        torch.tensor([0.9, 0.2]),
+    )
+    out = _person_centric(est)
+    flip = list(FLIP)
+    torch.testing.assert_close(out.joints_2d[0], est.joints_2d[0])
+    torch.testing.assert_close(out.joints_2d[1], est.joints_2d[1, flip])
+    torch.testing.assert_close(out.joint_scores[1], est.joint_scores[1, flip])
+    torch.testing.assert_close(out.unaries[1], est.unaries[1, flip])
+
+
+def test_unmirror_maps_mirrored_cells_and_labels_back():
+    stride, sizes = 3, [(7, 10), (7, 4)]  # (w - 1) % stride == 0: 4 and 2 grid columns
+    probs = torch.rand(2, 15, 3, 4)
+    out = _unmirror(probs, sizes, stride)
+    for i, gw in enumerate((4, 2)):
+        for j in range(15):
+            src = FLIP[j] if j < 14 else 14
+            torch.testing.assert_close(out[i, src, :, :gw], probs[i, j, :, :gw].flip(-1))
+    assert (out[1, :, :, 2:] == 0).all()
+    assert resize_image(np.zeros((10, 20, 3), np.uint8), 0.77, width_step=3).shape[1] % 3 == 1

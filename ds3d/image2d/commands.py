@@ -32,6 +32,8 @@ SMALL = {
     "max_depth": 10,
     "min_samples_leaf": 5,
     "psm_iterations": 10,
+    "facing_trees": 2,
+    "facing_images_per_tree": 20,
 }
 
 

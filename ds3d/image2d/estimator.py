@@ -11,6 +11,11 @@ Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background 
 channels. Layer 2 (auto-context) splits on the image channels AND on layer 1's joint probability
 maps, read at offsets, which lets it use where the other joints probably are. Unaries are
 log(box-blurred layer-2 probabilities).
+
+Left and right. The cascade and the PSM work with observer-centric labels (the arm whose
+shoulder is on the image's left is "right"; see ds3d.image2d.train). A two-class facing forest,
+read at the PSM's head top, neck and shoulders, says whether the person faces the camera; if
+not, left and right are swapped at the end, so results are person-centric like LSP's labels.
 """
 
 from __future__ import annotations
@@ -29,9 +34,10 @@ from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, 
 from ds3d.image2d.forest import Forest, predict_proba
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import NUM_JOINTS
+from ds3d.skeleton import FLIP, HEAD_TOP, L_SHOULDER, NECK, NUM_JOINTS, R_SHOULDER
 
 LOG_EPS = 1e-4  # floor of the probabilities before the log: keeps unaries finite
+FACING_JOINTS = (HEAD_TOP, NECK, R_SHOULDER, L_SHOULDER)  # where the facing forest looks
 
 
 @dataclass
@@ -49,13 +55,21 @@ class EstimatorParams:
     n_scales: int = 6
     scale_factor: float = 0.85
     scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
+    observer_labels: bool = True  # cascade + PSM observer-centric, a facing forest decides
+    flip_test: bool = False  # average the class maps of the image and of its mirror
 
 
-def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
-    """(H, W, 3) uint8 -> (round(H * scale), round(W * scale), 3) uint8, area-averaged when
-    shrinking. Returns the exact per-axis factors implicitly via the output shape."""
+def resize_image(image: np.ndarray, scale: float, width_step: int = 1) -> np.ndarray:
+    """(H, W, 3) uint8 -> (round(H * scale), ~W * scale, 3) uint8, area-averaged when
+    shrinking; the width is rounded so that (width - 1) is a multiple of width_step (then the
+    stride grid of the mirrored image falls on the same pixels). The exact per-axis factors
+    are the ratios of the shapes."""
     h, w = image.shape[:2]
-    nh, nw = max(round(h * scale), 1), max(round(w * scale), 1)
+    nh = max(round(h * scale), 1)
+    if width_step == 1:
+        nw = max(round(w * scale), 1)
+    else:
+        nw = max(round((w * scale - 1) / width_step), 0) * width_step + 1
     if (nh, nw) == (h, w):
         return image
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
@@ -146,6 +160,8 @@ class Estimate2D:
     map_to_image: (B, 2, 3) float32 affine map from unary cell (u = column, v = row, 1) to image
         pixels (x, y): image_xy = map_to_image @ (u, v, 1).
     scale: (B,) float32, the working scale chosen (working px per image px, mean of x and y).
+    facing_camera: (B,) float32, the facing forest's probability that the person faces the
+        camera (1 for models without one); below 0.5, left and right were swapped.
     timings: seconds per step (features, traversal, psm, total).
     """
 
@@ -155,6 +171,7 @@ class Estimate2D:
     unaries: torch.Tensor
     map_to_image: torch.Tensor
     scale: torch.Tensor
+    facing_camera: torch.Tensor
     timings: dict[str, float] = field(default_factory=dict)
 
     def sample_unaries(self, points: torch.Tensor) -> torch.Tensor:
@@ -243,10 +260,19 @@ class PoseEstimator2D:
     manifest.json (params, layer files), forest1.pt, forest2.pt, psm.pt.
     """
 
-    def __init__(self, layers: list[Forest], mixtures: PairwiseMixtures, params: EstimatorParams):
+    def __init__(
+        self,
+        layers: list[Forest],
+        mixtures: PairwiseMixtures,
+        params: EstimatorParams,
+        facing: Forest | None = None,
+    ):
+        if params.observer_labels and facing is None and layers:
+            raise DataFormatError("observer-centric labels need a facing forest")
         self.layers = layers
         self.mixtures = mixtures
         self.params = params
+        self.facing = facing
 
     @classmethod
     def load(cls, model_dir: Path | str | None = None) -> PoseEstimator2D:
@@ -257,9 +283,24 @@ class PoseEstimator2D:
             layers = [load_forest(model_dir / name) for name in manifest["layers"]]
             state = torch.load(model_dir / manifest["psm"], weights_only=True)
             mixtures = PairwiseMixtures.from_state_dict(state)
+            facing = manifest.get("facing")
+            facing = load_forest(model_dir / facing) if facing else None
         except (KeyError, TypeError, OSError, RuntimeError) as exc:
             raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
-        return cls(layers, mixtures, params)
+        return cls(layers, mixtures, params, facing)
+
+    def _facing(
+        self, channels: torch.Tensor, cells: torch.Tensor, sizes: list[tuple[int, int]]
+    ) -> torch.Tensor:
+        """P(faces the camera) from the facing forest at the PSM's head top, neck and
+        shoulders. channels: (B, 12, H, W); cells: (B, 14, 2) (u, v) -> (B,) float32."""
+        if self.facing is None:
+            return torch.ones(channels.shape[0])
+        yx = cells[:, list(FACING_JOINTS)].flip(-1) * self.params.stride  # (B, 4, 2) (y, x)
+        limit = torch.tensor(sizes) - 1  # (B, 2) (h - 1, w - 1)
+        yx = torch.minimum(yx.clamp_min(0), limit[:, None, :])
+        probs = predict_proba(self.facing, pad_channels(channels, self.facing.radius), yx)
+        return probs[..., 1].mean(dim=1)
 
     def scales(self) -> list[float]:
         p = self.params
@@ -290,24 +331,27 @@ class PoseEstimator2D:
         best = None
         for rel in scales if scales is not None else self.scales():
             t0 = now()
-            resized = [resize_image(c.image, c.base * rel) for c in crops]
-            hmax = max(r.shape[0] for r in resized)
-            wmax = max(r.shape[1] for r in resized)
-            # Channels per image, then zero-padded into the batch: exactly what a single image
-            # sees in training (zero outside the image), whatever the batch.
-            channels = torch.zeros(b, NUM_IMAGE_CHANNELS, hmax, wmax)
-            for i, r in enumerate(resized):
-                channels[i, :, : r.shape[0], : r.shape[1]] = image_channels(
-                    torch.from_numpy(r)[None]
-                )[0]
+            resized = [
+                resize_image(c.image, c.base * rel, p.stride if p.flip_test else 1) for c in crops
+            ]
             sizes = [r.shape[:2] for r in resized]
+            hmax = max(h for h, _ in sizes)
+            wmax = max(w for _, w in sizes)
+            channels = _batch_channels(resized, hmax, wmax)
             valid = valid_cells(sizes, hmax, wmax, p.stride)  # (B, 1, gh, gw)
+            if p.flip_test:
+                mirrored = [np.ascontiguousarray(r[:, ::-1]) for r in resized]
+                channels_m = _batch_channels(mirrored, hmax, wmax)
             t1 = now()
             probs = cascade_probs(self.layers, channels, p, sizes)[-1]
+            if p.flip_test:
+                probs_m = cascade_probs(self.layers, channels_m, p, sizes)[-1]
+                probs = (probs + _unmirror(probs_m, sizes, p.stride)) / 2
             unaries = unaries_from_probs(probs * valid, p.unary_blur)
             unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
             t2 = now()
             res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
+            facing = self._facing(channels, res.cells, sizes)
             t3 = now()
             timings["features"] += t1 - t0
             timings["traversal"] += t2 - t1
@@ -326,12 +370,55 @@ class PoseEstimator2D:
             affine[:, 1, 1] = p.stride / fac[:, 1]
             affine[:, :, 2] = 0.5 / fac - 0.5 + off
             cand = Estimate2D(
-                joints, res.joint_scores.float(), res.score.float(), unaries, affine, fac.mean(1)
+                joints,
+                res.joint_scores.float(),
+                res.score.float(),
+                unaries,
+                affine,
+                fac.mean(1),
+                facing,
             )
             best = cand if best is None else _keep_better(best, cand)
+        best = _person_centric(best)
         best.timings = {k: round(v, 6) for k, v in timings.items()}
         best.timings["total"] = round(now() - t_start, 6)
         return best
+
+
+def _batch_channels(images: list[np.ndarray], height: int, width: int) -> torch.Tensor:
+    """Channels per image, zero-padded into a (B, 12, height, width) batch: exactly what a
+    single image sees in training (zero outside the image), whatever the batch."""
+    out = torch.zeros(len(images), NUM_IMAGE_CHANNELS, height, width)
+    for i, r in enumerate(images):
+        out[i, :, : r.shape[0], : r.shape[1]] = image_channels(torch.from_numpy(r)[None])[0]
+    return out
+
+
+def _unmirror(probs: torch.Tensor, sizes: list[tuple[int, int]], stride: int) -> torch.Tensor:
+    """Class maps of mirrored images (B, 15, gh, gw) -> the same maps for the unmirrored
+    images: each image's valid columns reversed, left and right joints swapped (observer- and
+    person-centric labels both mirror this way). Widths must satisfy (w - 1) % stride == 0."""
+    out = torch.zeros_like(probs)
+    classes = [*FLIP, NUM_JOINTS]
+    for i, (_, w) in enumerate(sizes):
+        gw = (w - 1) // stride + 1
+        out[i, :, :, :gw] = probs[i, classes, :, :gw].flip(-1)
+    return out
+
+
+def _person_centric(est: Estimate2D) -> Estimate2D:
+    """Swap left and right of the images whose person faces away (observer -> person labels)."""
+    away = est.facing_camera < 0.5
+    flip = list(FLIP)
+    return Estimate2D(
+        torch.where(away.view(-1, 1, 1), est.joints_2d[:, flip], est.joints_2d),
+        torch.where(away.view(-1, 1), est.joint_scores[:, flip], est.joint_scores),
+        est.score,
+        torch.where(away.view(-1, 1, 1, 1), est.unaries[:, flip], est.unaries),
+        est.map_to_image,
+        est.scale,
+        est.facing_camera,
+    )
 
 
 def _pad_maps(maps: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -354,6 +441,7 @@ def _keep_better(a: Estimate2D, b: Estimate2D) -> Estimate2D:
         torch.where(sel, _pad_maps(b.unaries, h, w), _pad_maps(a.unaries, h, w)),
         torch.where(take_b.view(-1, 1, 1), b.map_to_image, a.map_to_image),
         torch.where(take_b, b.scale, a.scale),
+        torch.where(take_b, b.facing_camera, a.facing_camera),
     )
 
 

@@ -177,7 +177,8 @@ def traverse(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> t
 
     padded: (B, C + 1, H + 2r, W + 2r) float32 from features.pad_channels(channels,
     forest.radius); positions: (P, 2) int64 (y, x) pixels in the UNPADDED image, the same for
-    the whole batch -> (B, T, P) int64 node ids (leaves).
+    the whole batch, or (B, P, 2), one set per image; every position must lie within
+    [0, H) x [0, W) -> (B, T, P) int64 node ids (leaves).
 
     One step per depth level for all B x T x P walkers: one gather of the node rows, two gathers
     of channel values, a compare. int32 indices halve the memory traffic of the gathers.
@@ -194,10 +195,11 @@ def traverse(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> t
     table = torch.stack(
         [base1.int(), base2.int(), forest.left.int(), forest.threshold.view(torch.int32)], dim=1
     )
-    pix = (positions[:, 0] + r) * wp + positions[:, 1] + r  # (P,)
-    start = (torch.arange(b) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(1, 1, -1)
+    pix = (positions[..., 0] + r) * wp + positions[..., 1] + r  # (P,) or (B, P)
+    n_pix = pix.shape[-1]
+    start = (torch.arange(b) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(-1, 1, n_pix)
     start = start.expand(b, forest.n_trees, -1).reshape(-1).int()
-    node = forest.roots.view(1, -1, 1).expand(b, -1, len(pix)).reshape(-1).int()
+    node = forest.roots.view(1, -1, 1).expand(b, -1, n_pix).reshape(-1).int()
     for _ in range(forest.depth):
         row = table.index_select(0, node)
         v = flat.index_select(0, start + row[:, 0]) - flat.index_select(0, start + row[:, 1])

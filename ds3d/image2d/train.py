@@ -6,6 +6,12 @@ LSPet (10,000). Every image is rescaled so that its person spans `canonical_exte
 layer 2 grows on the other, reading layer 1's maps computed on images layer 1 never saw, so
 that its context features see maps as noisy as at test time (stacking without leakage).
 
+Labels are observer-centric by default (`EstimatorParams.observer_labels`): in every training
+image the arm whose shoulder is on the image's left is called "right", and likewise the leg by
+its hip, which is what local image evidence can tell. Whether the person faces the camera (then
+person-centric = observer-centric) or away (then left and right swap) is learnt by a separate
+two-class facing forest on pixels at the head, neck and shoulders.
+
 Each tree draws its own images (random horizontal flips), its own pixels (positives near the
 visible joints, background elsewhere) and its own pool of random pixel comparisons, and is
 grown by scikit-learn (ds3d.image2d.forest).
@@ -24,6 +30,7 @@ import torch
 
 from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.image2d.estimator import (
+    FACING_JOINTS,
     EstimatorParams,
     box_mean,
     cascade_probs,
@@ -41,7 +48,7 @@ from ds3d.image2d.features import (
 from ds3d.image2d.forest import Forest, fit_tree, stack_trees
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures
 from ds3d.image_io import read_image
-from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.skeleton import FLIP, L_HIP, L_SHOULDER, NUM_JOINTS, R_HIP, R_SHOULDER
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +68,8 @@ class TrainConfig:
     radius: int = 40  # max offset of a comparison, px at the working scale
     pos_per_joint: int = 8
     pos_radius: float = 5.0  # px: pixels this close to a joint are that joint's positives
+    facing_trees: int = 8
+    facing_images_per_tree: int = 1500
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
@@ -105,6 +114,27 @@ def load_training_image(
         joints[:, 0] = image.shape[1] - 1 - joints[:, 0]
         joints, visible = joints[list(FLIP)], visible[list(FLIP)]
     return TrainingImage(image, joints, visible)
+
+
+# (right chain, left chain): the arm from the shoulder, the leg from the hip.
+_ARMS = ((8, 7, 6), (9, 10, 11))
+_LEGS = ((2, 1, 0), (3, 4, 5))
+
+
+def faces_camera(joints: np.ndarray) -> bool:
+    """Person-centric (14, 2) joints: True when the right shoulder is left of the left one."""
+    return bool(joints[R_SHOULDER, 0] < joints[L_SHOULDER, 0])
+
+
+def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Relabel (14, 2) joints / (14,) visibility so that the arm (leg) whose shoulder (hip) is
+    on the image's left is the right one."""
+    order = list(range(NUM_JOINTS))
+    for (right, left), (ri, li) in ((_ARMS, (R_SHOULDER, L_SHOULDER)), (_LEGS, (R_HIP, L_HIP))):
+        if joints[ri, 0] > joints[li, 0]:
+            for a, b in zip(right, left, strict=True):
+                order[a], order[b] = b, a
+    return joints[order], visible[order]
 
 
 def sample_pixels(
@@ -170,6 +200,10 @@ def grow_layer(
             if contexts is None:
                 flip = bool(rng.random() < 0.5)
             sample = load_training_image(ann, index, flip, params)
+            if params.observer_labels:
+                sample = TrainingImage(
+                    sample.image, *observer_centric(sample.joints, sample.visible)
+                )
             ctx = contexts[items[k]] if contexts is not None else None
             padded = pad_channels(stacked_channels(sample, ctx, params), cfg.radius)[0]
             positions, labels = sample_pixels(rng, sample, cfg)
@@ -197,6 +231,48 @@ def grow_layer(
             time.perf_counter() - t1,
         )
     return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS + n_ctx)
+
+
+def grow_facing(
+    ann: PoseAnnotations,
+    items: list[tuple[int, bool]],
+    cfg: TrainConfig,
+    params: EstimatorParams,
+    rng: np.random.Generator,
+) -> Forest:
+    """Two-class forest (0 = faces away, 1 = faces the camera) on pixels near the visible head
+    top, neck and shoulders; labels from the person-centric shoulders (faces_camera)."""
+    trees = []
+    for t in range(cfg.facing_trees):
+        t0 = time.perf_counter()
+        pool = sample_pool(rng, cfg.pool_size, cfg.radius, NUM_IMAGE_CHANNELS)
+        chosen = rng.choice(len(items), min(cfg.facing_images_per_tree, len(items)), replace=False)
+        xs, ys = [], []
+        for k in chosen:
+            sample = load_training_image(ann, items[k][0], bool(rng.random() < 0.5), params)
+            keep = np.zeros(NUM_JOINTS, dtype=bool)
+            keep[list(FACING_JOINTS)] = True
+            if not (sample.visible[R_SHOULDER] and sample.visible[L_SHOULDER]):
+                continue  # junk or guessed shoulders give no reliable label
+            positions, labels = sample_pixels(
+                rng, TrainingImage(sample.image, sample.joints, sample.visible & keep), cfg
+            )
+            positions = positions[labels != BACKGROUND]
+            padded = pad_channels(stacked_channels(sample, None, params), cfg.radius)[0]
+            xs.append(evaluate_pool(padded, cfg.radius, torch.from_numpy(positions), pool).numpy())
+            ys.append(np.full(len(positions), int(faces_camera(sample.joints))))
+        tree = fit_tree(
+            np.concatenate(xs),
+            np.concatenate(ys),
+            pool,
+            2,
+            seed=int(rng.integers(2**31)),
+            max_depth=cfg.max_depth,
+            min_samples_leaf=cfg.min_samples_leaf,
+        )
+        trees.append(tree)
+        log.info("facing tree %d/%d: %.1fs", t + 1, cfg.facing_trees, time.perf_counter() - t0)
+    return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS)
 
 
 def layer1_contexts(
@@ -227,11 +303,18 @@ def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotat
 
 
 def psm_training_poses(ann: PoseAnnotations, params: EstimatorParams):
-    """Training poses at the working scale, with their mirror images: (N2, 14, 2), (N2, 14)."""
+    """Training poses at the working scale (observer-centric if the model's labels are), with
+    their mirror images: (2N, 14, 2) px, (2N, 14) bool."""
     scale = working_scale_joints(ann.joints, ann.visible, params.canonical_extent)
     joints = ann.joints * scale[:, None, None]
+    visible = ann.visible
+    if params.observer_labels:
+        pairs = [observer_centric(j, v) for j, v in zip(joints, visible, strict=True)]
+        joints = np.stack([j for j, _ in pairs])
+        visible = np.stack([v for _, v in pairs])
+    # A mirrored observer-centric pose is observer-centric again (x flips, and so do labels).
     mirrored = joints[:, list(FLIP)] * np.array([-1.0, 1.0], dtype=np.float32)
-    visible = np.concatenate([ann.visible, ann.visible[:, list(FLIP)]])
+    visible = np.concatenate([visible, visible[:, list(FLIP)]])
     return np.concatenate([joints, mirrored]).astype(np.float32), visible
 
 
@@ -274,6 +357,10 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         timings[f"layer{depth}"] = time.perf_counter() - t1
     for i, forest in enumerate(layers):
         save_forest(forest, out_dir / f"forest{i + 1}.pt")
+    if params.observer_labels:
+        t1 = time.perf_counter()
+        save_forest(grow_facing(train_ann, items1, cfg, params, rng), out_dir / "facing.pt")
+        timings["facing"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
     timings["psm"] = time.perf_counter() - t2
@@ -292,6 +379,7 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         "params": asdict(params),
         "layers": [f"forest{i + 1}.pt" for i in range(len(layers))],
         "psm": "psm.pt",
+        "facing": "facing.pt" if params.observer_labels else None,
         "train_seconds_1_thread": {k: round(v, 1) for k, v in timings.items()},
         "metrics": {},
     }
