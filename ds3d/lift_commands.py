@@ -158,6 +158,7 @@ def eval_h36m(args) -> int:
     if args.limit:
         cases = cases.subset(np.arange(min(args.limit, len(cases))))
     lifter = _load_lifter(args)
+    base = lifter.config
     report = {
         "model": lifter.model_id,
         "database": args.database,
@@ -166,7 +167,7 @@ def eval_h36m(args) -> int:
     }
     for name in args.variants.split(","):
         perturbation, overrides = EVAL_VARIANTS[name]
-        lifter.configure(dataclasses.replace(lifter.config, **overrides))
+        lifter.configure(dataclasses.replace(base, **overrides))
         start = time.perf_counter()
         result = evaluate(lifter, cases, **perturbation)
         result["seconds"] = round(time.perf_counter() - start, 1)
