@@ -24,8 +24,8 @@ for B in ${BATCH_SIZES:-1 16}; do
         $PY -m service.loadtest "http://127.0.0.1:$PORT" --mode closed --concurrency "$C" \
             --duration "$DURATION" --out "$OUT" --name "lift_closed_c${C}_b${B}" --deadline 10 \
             | $PY -c "import json,sys; d=json.load(sys.stdin); l=d['latency_ms_ok'] or {}; \
-print('b=$B c=$C ok/s=%.2f p50=%s p95=%s p99=%s %s' % (d['ok_rps'], \
-*[round(l[k]) if l else None for k in ('p50','p95','p99')], d['status_counts']))"
+print('b=$B c=$C ok/s=%.2f p50=%s p95=%s p99=%s mean_batch=%.1f %s' % (d['ok_rps'], \
+*[round(l[k]) if l else None for k in ('p50','p95','p99')], d['server_mean_batch_size'] or 0, d['status_counts']))"
     done
     kill -TERM $SERVER
     wait $SERVER || true

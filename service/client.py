@@ -241,7 +241,8 @@ class PoseClient:
 
     def lift(self, joints_2d, intrinsics=None, visible=None) -> LiftResult:
         """joints_2d (14, 2) or (B, 14, 2) pixels; intrinsics (3, 3) or (B, 3, 3); visible (14,)
-        or (B, 14) bool -> LiftResult with joints_3d (B, 14, 3) mm."""
+        or (B, 14) bool -> LiftResult with joints_3d (B, 14, 3) mm. One request: B is at most
+        the server's queue size (DS3D_MAX_QUEUE, default 64), else ServiceError 413."""
         req = self._proto.lift_request(joints_2d, intrinsics, visible)
         return self._send(req, self._proto.parse_lift)
 

@@ -147,6 +147,21 @@ class Runner:
         self.samples.append(Sample(start - self.t0, end - start, status))
 
 
+async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, float, float]:
+    """The server's (items batched, batches, items dropped for their deadline) so far, from
+    its /metrics (a replica's own, when behind a load balancer)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    totals = {"ds3d_batch_size_sum": 0.0, "ds3d_batch_size_count": 0.0}
+    totals["ds3d_deadline_dropped_items_total"] = 0.0
+    text = (await client.get("/metrics")).text
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            if sample.name in totals and sample.labels.get("queue") == queue:
+                totals[sample.name] = sample.value
+    return tuple(totals.values())
+
+
 async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_requests: int):
     stop_at = runner.t0 + duration_s
     budget = iter(range(max_requests))
@@ -181,6 +196,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
         payloads = image_payloads(args.images, 256)
     limits = httpx.Limits(max_connections=args.max_connections, max_keepalive_connections=64)
     async with httpx.AsyncClient(base_url=args.url, timeout=args.timeout, limits=limits) as client:
+        batches_before = await batch_totals(client, args.endpoint)
         runner = Runner(client, args.endpoint, payloads, time.perf_counter())
         if args.mode == "closed":
             await closed_loop(runner, args.concurrency, args.duration, args.max_requests)
@@ -189,6 +205,8 @@ async def run(args) -> tuple[dict, list[Sample]]:
         elapsed = time.perf_counter() - runner.t0
         result = summarize(runner.samples, args.duration, elapsed, args.deadline)
         after = {path: (await client.get(path)).status_code for path in ("/healthz", "/readyz")}
+        batches_after = await batch_totals(client, args.endpoint)
+    items, batches, dropped = (a - b for a, b in zip(batches_after, batches_before, strict=True))
     result.update(
         endpoint=args.endpoint,
         mode=args.mode,
@@ -196,6 +214,9 @@ async def run(args) -> tuple[dict, list[Sample]]:
         rate=args.rate if args.mode == "open" else None,
         items_per_request=args.items if args.endpoint == "lift" else 1,
         health_after=after,
+        server_batches=batches,
+        server_mean_batch_size=items / batches if batches else None,
+        server_deadline_dropped=dropped,
     )
     return result, runner.samples
 
