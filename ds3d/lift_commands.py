@@ -39,7 +39,8 @@ def register(commands, evals, benches) -> None:
     p.set_defaults(func=lift)
 
     p = evals.add_parser("h36m", help="Human3.6M protocol with ground-truth 2D (S11)")
-    p.add_argument("--stride", type=int, default=64, help="every n-th frame of S11")
+    p.add_argument("--subject", default="S11", help="test subject (S9 for tuning on training data)")
+    p.add_argument("--stride", type=int, default=64, help="every n-th frame of each sequence")
     p.add_argument("--limit", type=int, help="evaluate only the first n test poses")
     p.add_argument(
         "--variants",
@@ -154,7 +155,7 @@ EVAL_VARIANTS: dict[str, tuple[dict, dict]] = {
 def eval_h36m(args) -> int:
     from ds3d.evaluation.h36m import evaluate, protocol_cases
 
-    cases = protocol_cases(stride=args.stride)
+    cases = protocol_cases(args.subject, args.stride)
     if args.limit:
         cases = cases.subset(np.arange(min(args.limit, len(cases))))
     lifter = _load_lifter(args)
@@ -162,6 +163,7 @@ def eval_h36m(args) -> int:
     report = {
         "model": lifter.model_id,
         "database": args.database,
+        "subject": args.subject,
         "stride": args.stride,
         "variants": {},
     }
