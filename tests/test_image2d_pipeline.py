@@ -16,9 +16,7 @@ from ds3d.image2d.estimator import (
     EstimatorParams,
     PoseEstimator2D,
     _person_centric,
-    _unmirror,
     context_channels,
-    resize_image,
     valid_cells,
 )
 from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
@@ -171,15 +169,3 @@ def test_faces_away_swaps_left_and_right_at_the_end():
     torch.testing.assert_close(out.joints_2d[1], est.joints_2d[1, flip])
     torch.testing.assert_close(out.joint_scores[1], est.joint_scores[1, flip])
     torch.testing.assert_close(out.unaries[1], est.unaries[1, flip])
-
-
-def test_unmirror_maps_mirrored_cells_and_labels_back():
-    stride, sizes = 3, [(7, 10), (7, 4)]  # (w - 1) % stride == 0: 4 and 2 grid columns
-    probs = torch.rand(2, 15, 3, 4)
-    out = _unmirror(probs, sizes, stride)
-    for i, gw in enumerate((4, 2)):
-        for j in range(15):
-            src = FLIP[j] if j < 14 else 14
-            torch.testing.assert_close(out[i, src, :, :gw], probs[i, j, :, :gw].flip(-1))
-    assert (out[1, :, :, 2:] == 0).all()
-    assert resize_image(np.zeros((10, 20, 3), np.uint8), 0.77, width_step=3).shape[1] % 3 == 1

@@ -14,7 +14,7 @@ import torch
 
 from ds3d.data.lsp import PoseAnnotations, load_lsp
 from ds3d.evaluation.metrics import pck, pixel_error
-from ds3d.image2d.estimator import EstimatorParams, PoseEstimator2D, read_manifest
+from ds3d.image2d.estimator import Estimate2D, EstimatorParams, PoseEstimator2D, read_manifest
 from ds3d.image2d.train import TrainConfig, train, training_annotations, write_manifest
 from ds3d.image_io import read_image
 from ds3d.paths import MODELS_DIR, data_root
@@ -80,9 +80,8 @@ def evaluate_validation(model_dir: Path, cfg: TrainConfig) -> dict:
     return evaluate(PoseEstimator2D.load(model_dir), val)
 
 
-def _argmax_joints(est: PoseEstimator2D, images: list[np.ndarray]) -> torch.Tensor:
-    """Forest alone: per joint, the best cell of the unaries at the base scale. (B, 14, 2) px."""
-    res = est.estimate(images, scales=[1.0])
+def argmax_joints(res: Estimate2D) -> torch.Tensor:
+    """Forest alone: per joint, the best cell of the returned unaries. (B, 14, 2) px."""
     b, j, _, w = res.unaries.shape
     best = res.unaries.reshape(b, j, -1).argmax(-1)
     uv1 = torch.stack([best % w, best // w, torch.ones_like(best)], -1).float()
@@ -92,13 +91,15 @@ def _argmax_joints(est: PoseEstimator2D, images: list[np.ndarray]) -> torch.Tens
 def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dict:
     """PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and mean, and mean
     pixel error, over all 14 joints of every image (LSP's protocol, occluded joints included),
-    for the full model (pyramid + PSM) and for the forest argmax alone at the base scale."""
+    for the full model (pyramid + PSM) and for the forest alone: the argmax of each joint's
+    unary map at the scale the PSM chose (and with its left/right decision)."""
     preds, argmax = [], []
     t0 = time.perf_counter()
     for i in range(0, len(ann), batch):
         images = [read_image(p) for p in ann.image_paths[i : i + batch]]
-        preds.append(est.estimate(images).joints_2d)
-        argmax.append(_argmax_joints(est, images))
+        res = est.estimate(images)
+        preds.append(res.joints_2d)
+        argmax.append(argmax_joints(res))
     seconds = time.perf_counter() - t0
     gt = torch.from_numpy(ann.joints)
     out = {"n_images": len(ann), "seconds": round(seconds, 1)}

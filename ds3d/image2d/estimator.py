@@ -56,20 +56,13 @@ class EstimatorParams:
     scale_factor: float = 0.85
     scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
     observer_labels: bool = True  # cascade + PSM observer-centric, a facing forest decides
-    flip_test: bool = False  # average the class maps of the image and of its mirror
 
 
-def resize_image(image: np.ndarray, scale: float, width_step: int = 1) -> np.ndarray:
-    """(H, W, 3) uint8 -> (round(H * scale), ~W * scale, 3) uint8, area-averaged when
-    shrinking; the width is rounded so that (width - 1) is a multiple of width_step (then the
-    stride grid of the mirrored image falls on the same pixels). The exact per-axis factors
-    are the ratios of the shapes."""
+def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W, 3) uint8 -> (round(H * scale), round(W * scale), 3) uint8, area-averaged when
+    shrinking. The exact per-axis factors are the ratios of the shapes."""
     h, w = image.shape[:2]
-    nh = max(round(h * scale), 1)
-    if width_step == 1:
-        nw = max(round(w * scale), 1)
-    else:
-        nw = max(round((w * scale - 1) / width_step), 0) * width_step + 1
+    nh, nw = max(round(h * scale), 1), max(round(w * scale), 1)
     if (nh, nw) == (h, w):
         return image
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
@@ -331,22 +324,14 @@ class PoseEstimator2D:
         best = None
         for rel in scales if scales is not None else self.scales():
             t0 = now()
-            resized = [
-                resize_image(c.image, c.base * rel, p.stride if p.flip_test else 1) for c in crops
-            ]
+            resized = [resize_image(c.image, c.base * rel) for c in crops]
             sizes = [r.shape[:2] for r in resized]
             hmax = max(h for h, _ in sizes)
             wmax = max(w for _, w in sizes)
             channels = _batch_channels(resized, hmax, wmax)
             valid = valid_cells(sizes, hmax, wmax, p.stride)  # (B, 1, gh, gw)
-            if p.flip_test:
-                mirrored = [np.ascontiguousarray(r[:, ::-1]) for r in resized]
-                channels_m = _batch_channels(mirrored, hmax, wmax)
             t1 = now()
             probs = cascade_probs(self.layers, channels, p, sizes)[-1]
-            if p.flip_test:
-                probs_m = cascade_probs(self.layers, channels_m, p, sizes)[-1]
-                probs = (probs + _unmirror(probs_m, sizes, p.stride)) / 2
             unaries = unaries_from_probs(probs * valid, p.unary_blur)
             unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
             t2 = now()
@@ -391,18 +376,6 @@ def _batch_channels(images: list[np.ndarray], height: int, width: int) -> torch.
     out = torch.zeros(len(images), NUM_IMAGE_CHANNELS, height, width)
     for i, r in enumerate(images):
         out[i, :, : r.shape[0], : r.shape[1]] = image_channels(torch.from_numpy(r)[None])[0]
-    return out
-
-
-def _unmirror(probs: torch.Tensor, sizes: list[tuple[int, int]], stride: int) -> torch.Tensor:
-    """Class maps of mirrored images (B, 15, gh, gw) -> the same maps for the unmirrored
-    images: each image's valid columns reversed, left and right joints swapped (observer- and
-    person-centric labels both mirror this way). Widths must satisfy (w - 1) % stride == 0."""
-    out = torch.zeros_like(probs)
-    classes = [*FLIP, NUM_JOINTS]
-    for i, (_, w) in enumerate(sizes):
-        gw = (w - 1) // stride + 1
-        out[i, :, :, :gw] = probs[i, classes, :, :gw].flip(-1)
     return out
 
 

@@ -1,0 +1,29 @@
+"""Accuracy regression of the committed 2D model on the first 100 LSP test images.
+
+The floors are the PCK@0.2 measured with `ds3d eval lsp --limit 100` when the model was
+committed (docs/RESULTS_2D.md) minus a margin of 3 points, which absorbs float differences
+across machines, not a real regression.
+"""
+
+import pytest
+import torch
+
+from ds3d.data.lsp import load_lsp
+from ds3d.image2d.commands import DEFAULT_MODEL, evaluate
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.paths import data_root
+
+MEASURED = {"psm": None, "forest_argmax": None}  # PCK@0.2, first 100 LSP test images
+MARGIN = 0.03
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
+)
+def test_pck_on_100_lsp_test_images_does_not_regress():
+    torch.set_num_threads(1)
+    test = load_lsp(split="test").subset(range(100))
+    result = evaluate(PoseEstimator2D.load(DEFAULT_MODEL), test)
+    for name, floor in MEASURED.items():
+        assert result[name]["pck@0.2"] >= floor - MARGIN, (name, result[name])
