@@ -1,14 +1,13 @@
 """The models behind the service and their batch functions (run on the one model thread).
 
 `Engine.lift_batch` and `Engine.pose_batch` take a list of per-request items and return one
-output per item, in order; they are the `run_batch` functions of the MicroBatchers. Items that
-differ in which optional inputs they carry (intrinsics, bbox) are run as separate library calls,
-because the library takes each optional input for the whole batch or not at all.
+output per item, in order; they are the `run_batch` functions of the MicroBatchers. Items with
+and without intrinsics are run as separate library calls, because the library takes intrinsics
+for the whole batch or not at all.
 """
 
 from __future__ import annotations
 
-import importlib
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ import torch
 
 from ds3d.errors import DataFormatError
 from ds3d.lifter import Lifter
+from ds3d.pipeline import Pipeline
 
 
 @dataclass(frozen=True)
@@ -74,26 +74,21 @@ def _groups(keys: Sequence[tuple[bool, ...]]) -> dict[tuple[bool, ...], list[int
     return groups
 
 
-def load_pipeline(model_dir: Path | None, device: str):
-    """The image -> 2D + 3D Pipeline of model_dir, or (None, why) when it has no 2D stage or the
-    library has no pipeline yet."""
+def load_pipeline(model_dir: Path | None, device: str) -> tuple[Pipeline | None, str | None]:
+    """The image -> 2D + 3D Pipeline of model_dir, or (None, why) when it has no 2D stage."""
     try:
-        module = importlib.import_module("ds3d.pipeline")
-    except ModuleNotFoundError as e:
-        if e.name != "ds3d.pipeline":
-            raise
-        return None, "this build of ds3d has no image pipeline; only /v1/lift is served"
-    try:
-        return module.Pipeline.load(model_dir=model_dir, device=device), None
+        return Pipeline.load(model_dir=model_dir, device=device), None
     except (DataFormatError, FileNotFoundError) as e:
-        return None, f"the model directory has no 2D stage: {e}"
+        return None, f"the model directory has no usable 2D stage: {e}"
 
 
 class Engine:
     """The loaded models. `on_timings(timings_ms)`, when set, is called once per library call
     (the app points it at its metrics)."""
 
-    def __init__(self, lifter: Lifter, pipeline=None, pose_unavailable: str | None = None):
+    def __init__(
+        self, lifter: Lifter, pipeline: Pipeline | None = None, pose_unavailable: str | None = None
+    ):
         self.lifter = lifter
         self.pipeline = pipeline
         self.pose_unavailable = pose_unavailable if pipeline is None else None
@@ -102,8 +97,10 @@ class Engine:
 
     @classmethod
     def load(cls, model_dir: Path | None, device: str = "cpu") -> Engine:
-        lifter = Lifter.load(model_dir=model_dir, device=device)
+        """The models of model_dir (None: the bundled models/). /v1/lift needs its pose database;
+        /v1/pose also its 2D stage. The pipeline's lifter serves /v1/lift too (loaded once)."""
         pipeline, why = load_pipeline(model_dir, device)
+        lifter = pipeline.lifter if pipeline is not None else Lifter.load(model_dir, device=device)
         return cls(lifter, pipeline, why)
 
     @property
@@ -131,18 +128,16 @@ class Engine:
         return out  # type: ignore[return-value]
 
     def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:
-        """2D and 3D poses of B images (needs the pipeline). The contract used here:
-        `Pipeline.estimate(images: list of (H, W, 3) uint8, bboxes: None or B boxes (x0, y0,
-        x1, y1) px, intrinsics: None or (B, 3, 3))` returns joints_2d (B, 14, 2) px,
-        joints_3d (B, 14, 3) mm, confidence (B, 14), joint_set (B names), timings_ms."""
+        """2D and 3D poses of B images (needs the pipeline; a box may be None per image, the
+        intrinsics are given for a whole call or not at all)."""
         if self.pipeline is None:
             raise RuntimeError(self.pose_unavailable)
         out: list[PoseOutput | None] = [None] * len(items)
-        keys = [(it.bbox is not None, it.intrinsics is not None) for it in items]
-        for (has_box, has_k), idx in _groups(keys).items():
+        for (has_k,), idx in _groups([(it.intrinsics is not None,) for it in items]).items():
+            boxes = [items[i].bbox for i in idx]
             res = self.pipeline.estimate(
                 [items[i].image for i in idx],
-                bboxes=[items[i].bbox for i in idx] if has_box else None,
+                bboxes=None if all(b is None for b in boxes) else boxes,
                 intrinsics=np.stack([items[i].intrinsics for i in idx]) if has_k else None,
             )
             info = self._batch_info(len(idx), res.timings_ms)

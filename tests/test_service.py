@@ -20,8 +20,10 @@ import uvicorn
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
+from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import DataFormatError
+from ds3d.image_io import read_image
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import JOINT_NAMES
 from service.app import create_app
@@ -253,6 +255,51 @@ def test_pose_on_a_valid_image(url, engine):
         else:
             res = client.estimate(jpeg())
             assert res.joints_2d.shape == (14, 2) and res.joints_3d.shape == (14, 3)
+
+
+@pytest.fixture(scope="module")
+def pose_engine(data_dir, tmp_path_factory):
+    """Models with a 2D stage: a --small 2D model trained here (seconds) beside a link to the
+    pose database, so that /v1/pose runs the real Pipeline."""
+    out = tmp_path_factory.mktemp("models")
+    assert cli(["train-2d", "--small", "--no-eval", "--out", str(out / "image2d")]) == 0
+    (out / "posedb").symlink_to(MODEL_DIR / "posedb")
+    engine = Engine.load(out, "cpu")
+    assert engine.pipeline is not None, engine.pose_unavailable
+    return engine
+
+
+def test_pose_matches_the_pipeline(pose_engine):
+    path = load_lsp(split="test").image_paths[0]
+    image = read_image(path)
+    box = [5.0, 5.0, image.shape[1] - 5.0, image.shape[0] - 5.0]
+    k = [[600.0, 0.0, image.shape[1] / 2], [0.0, 600.0, image.shape[0] / 2], [0.0, 0.0, 1.0]]
+    pipeline = pose_engine.pipeline
+    with serve(pose_engine, max_batch_size=8, max_wait_ms=100) as u, PoseClient(u) as client:
+        # A file path, sent as multipart.
+        res = client.estimate(path)
+        ref = pipeline.estimate([image])
+        np.testing.assert_allclose(res.joints_2d, ref.joints_2d[0].numpy(), atol=1e-2)
+        np.testing.assert_allclose(res.joints_3d, ref.joints_3d[0].numpy(), atol=1e-2)
+        assert res.joint_set == ref.joint_set[0] and res.confidence.shape == (14,)
+        assert {"2d_features", "total"} <= set(res.timings_ms)
+        # Raw JPEG body, box and intrinsics as query parameters.
+        params = {"bbox": json.dumps(box), "intrinsics": json.dumps(k)}
+        raw = httpx.post(
+            f"{u}/v1/pose", params=params, content=path.read_bytes(),
+            headers={"content-type": "image/jpeg"}, timeout=60,
+        )  # fmt: skip
+        assert raw.status_code == 200, raw.text
+        ref = pipeline.estimate([image], bboxes=[np.asarray(box)], intrinsics=np.asarray(k)[None])
+        np.testing.assert_allclose(raw.json()["joints_3d"], ref.joints_3d[0].numpy(), atol=1e-2)
+        # Concurrent numpy images (sent as PNG) share batches and keep their own results.
+        before = metric(u, "ds3d_batch_size", {"queue": "pose"}).get("ds3d_batch_size_count", 0)
+        many = client.estimate_many([image, image[:, ::-1].copy()] * 2, concurrency=4)
+        batches = metric(u, "ds3d_batch_size", {"queue": "pose"})["ds3d_batch_size_count"] - before
+        assert batches < 4
+        np.testing.assert_allclose(many[0].joints_2d, res.joints_2d, atol=1e-2)
+        np.testing.assert_allclose(many[2].joints_2d, many[0].joints_2d, atol=1e-2)
+        assert not np.allclose(many[1].joints_2d, many[0].joints_2d)
 
 
 def test_full_queue_answers_503_at_once(engine, poses):
