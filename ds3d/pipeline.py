@@ -52,14 +52,16 @@ class PipelineConfig:
     cells^2 (one cell is `stride` px at the working scale). window_margin: cells of search
     region around the neighbours' projections (search_window). unary_weight: the refinement's
     unaries relative to the 2D stage's (EstimatorParams.unary_weight), against the binaries.
+    min_var and unary_weight were chosen on LSP train im0901-im1000 (held out from the 2D
+    model's training; docs/RESULTS_PIPELINE.md); the margin did not matter there (4 or 8 cells).
     """
 
     iterations: int = 2
     selection: str = "posterior"
     components: int = 5
-    min_var: float = 1.0
+    min_var: float = 4.0
     window_margin: int = 4
-    unary_weight: float = 1.0
+    unary_weight: float = 2.0
 
     def __post_init__(self):
         if self.iterations < 1:

@@ -1,4 +1,5 @@
-"""The pipeline's commands: `ds3d predict`, `ds3d eval lsp-pipeline`, `ds3d bench pipeline`."""
+"""The pipeline's commands: `ds3d predict`, `ds3d gallery`, `ds3d eval lsp-pipeline`,
+`ds3d bench pipeline`."""
 
 from __future__ import annotations
 
@@ -36,6 +37,13 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--render", type=Path, help="PNG; with several images, PATH-<i>.png for image i")
     _model_options(p)
     p.set_defaults(func=predict)
+
+    p = commands.add_parser("gallery", help="renders of LSP test images picked by a seed")
+    p.add_argument("--n", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("docs/gallery"))
+    _model_options(p)
+    p.set_defaults(func=gallery)
 
     p = evals.add_parser(
         "lsp-pipeline", help="2D accuracy of the refinement (iterations, joint-set ablation) on LSP"
@@ -114,6 +122,39 @@ def predict(args) -> int:
                 caption=f"{args.images[i].name}: joint set {result.joint_set[i]}",
             )
     print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def gallery(args) -> int:
+    """Random picks, not the best ones: the gallery shows successes and failures alike."""
+    from ds3d.data.lsp import load_lsp
+    from ds3d.evaluation.metrics import pck
+    from ds3d.image_io import read_image
+    from ds3d.render import render
+
+    pipeline = _load(args)
+    ann = load_lsp(split="test")
+    picks = sorted(np.random.default_rng(args.seed).choice(len(ann), args.n, replace=False))
+    images = [read_image(ann.image_paths[i]) for i in picks]
+    result = pipeline.estimate(images)
+    args.out.mkdir(parents=True, exist_ok=True)
+    gt = torch.from_numpy(ann.joints[picks])
+    for j, i in enumerate(picks):
+        name = ann.image_paths[i].stem
+        correct = float(pck(result.joints_2d[j : j + 1], gt[j : j + 1]).mean())
+        caption = (
+            f"LSP {name}: joint set {result.joint_set[j]}, "
+            f"{round(14 * correct)}/14 joints within PCK@0.2"
+        )
+        render(
+            args.out / f"{name}.png",
+            images[j],
+            result.joints_2d[j].numpy(),
+            result.joints_3d[j].numpy(),
+            result.joints_2d_initial[j].numpy(),
+            caption=caption,
+        )
+        print(args.out / f"{name}.png", caption)
     return 0
 
 
