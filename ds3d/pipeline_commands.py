@@ -49,10 +49,18 @@ def register(commands, evals, benches) -> None:
         "lsp-pipeline", help="2D accuracy of the refinement (iterations, joint-set ablation) on LSP"
     )
     p.add_argument("--split", choices=("test", "train"), default="test")
+    p.add_argument("--start", type=int, default=0, help="skip the split's first n images")
     p.add_argument("--every", type=int, default=1, help="every n-th image of the split")
     p.add_argument("--limit", type=int, help="at most this many images (after --every)")
     p.add_argument("--variants", default=",".join(VARIANTS), help=f"of {', '.join(VARIANTS)}")
     p.add_argument("--batch", type=int, default=16)
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override a PipelineConfig field in every variant (e.g. min_var=4)",
+    )
     p.add_argument("--out", type=Path, help="JSON report")
     _model_options(p)
     p.set_defaults(func=eval_lsp)
@@ -178,7 +186,7 @@ def eval_lsp(args) -> int:
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(VARIANTS)}")
     pipeline = _load(args)
     ann = load_lsp(split=args.split)
-    ann = ann.subset(range(0, len(ann), args.every))
+    ann = ann.subset(range(args.start, len(ann), args.every))
     if args.limit is not None:
         ann = ann.subset(range(min(args.limit, len(ann))))
     preds: dict[str, list[torch.Tensor]] = {"initial": []}
@@ -191,7 +199,7 @@ def eval_lsp(args) -> int:
         preds["initial"].append(estimate.joints_2d)
         for name in names:
             t0 = time.perf_counter()
-            pipeline.config, lifter_config = _configs(name)
+            pipeline.config, lifter_config = _configs(name, args.set)
             pipeline.lifter.configure(lifter_config)
             res = pipeline.lift_estimate(estimate)
             for t in range(res.iterations):
@@ -203,10 +211,10 @@ def eval_lsp(args) -> int:
     gt = torch.from_numpy(ann.joints)
     split = "test im1001-im2000" if args.split == "test" else "train im0001-im1000"
     report = {
-        "dataset": f"LSP {split}, every {args.every}. image",
+        "dataset": f"LSP {split}, images [{args.start}::{args.every}] of the split",
         "n_images": len(ann),
         "threads": args.threads,
-        "variants": {n: _describe(*_configs(n)) for n in names},
+        "variants": {n: _describe(*_configs(n, args.set)) for n in names},
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "results": {k: _metrics(torch.cat(v), gt) for k, v in preds.items()},
     }
@@ -218,12 +226,20 @@ def eval_lsp(args) -> int:
     return 0
 
 
-def _configs(name: str):
+def _configs(name: str, overrides: list[str] = ()):
+    """The configurations of a variant, with NAME=VALUE overrides of PipelineConfig fields."""
     from ds3d.lifter import LifterConfig
     from ds3d.pipeline import PipelineConfig
 
     config, lifter_config = VARIANTS[name]
-    return PipelineConfig(**config), LifterConfig(**lifter_config)
+    types = {f.name: type(f.default) for f in dataclasses.fields(PipelineConfig)}
+    extra = {}
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key not in types:
+            raise SystemExit(f"--set {item}: not a PipelineConfig field ({', '.join(types)})")
+        extra[key] = types[key](value)
+    return PipelineConfig(**(config | extra)), LifterConfig(**lifter_config)
 
 
 def _describe(config, lifter_config) -> dict:
