@@ -149,6 +149,8 @@ EVAL_VARIANTS: dict[str, tuple[dict, dict]] = {
     "paper-selection": ({}, {"select_on_all_joints": False}),
     "paper-selection-outlier40": ({"outlier_px": 40.0}, {"select_on_all_joints": False}),
     "unweighted": ({}, {"weighting": False}),
+    "projection-fit-20": ({}, {"projection_iterations": 20}),
+    "pose-fit-30": ({}, {"pose_iterations": 30}),
 }
 
 
