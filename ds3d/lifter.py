@@ -3,7 +3,7 @@
     retrieval      K neighbours per joint set from the pose database        (ds3d.mocap.retrieval)
     projection fit M_s per set, eq:projerr1, batched L-BFGS                  (ds3d.fit.solve)
     weighting      keep the K_w best neighbours, eq:wtn                     (ds3d.fit.selection)
-    set choice     s^ by eq:energyS                                         (ds3d.fit.selection)
+    set choice     s^ by eq:energyS, E_p on all visible joints              (ds3d.fit.selection)
     3D fit         X^ by eq:energyMin2 over PCA(18) of the neighbours       (ds3d.fit.solve)
 
 With no image there are no unaries, so a neighbour's weight (eq:wt) is replaced by the negative
@@ -41,8 +41,10 @@ class LifterConfig:
     pca_components: int = 18
     joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
     omega: EnergyWeights = field(default_factory=EnergyWeights)
-    projection_iterations: int = 5
-    pose_iterations: int = 15
+    projection_iterations: int = 5  # L-BFGS steps of eq:projerr1 (20 gain 0.2 mm: RESULTS.md)
+    pose_iterations: int = 15  # L-BFGS steps of eq:energyMin2
+    # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
+    # own joints, as written, which lets small sets win by fitting fewer joints (RESULTS.md).
     select_on_all_joints: bool = True
     index: IndexConfig = field(default_factory=IndexConfig)
 
