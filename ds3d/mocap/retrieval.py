@@ -28,13 +28,13 @@ from ds3d.skeleton import JOINT_SETS, SET_NAMES
 
 @dataclass(frozen=True)
 class IndexConfig:
-    """kind: "flat" (exact) or "ivf" (inverted file, approximate: `nlist` lists, `nprobe` searched).
-    storage: "f32" or "f16" (scalar-quantised half floats: half the memory, same neighbours up to
+    """How an index is built. kind: "flat" (exact) or "ivf" (inverted file with `nlist` lists,
+    approximate; how many lists a search visits is a search-time setting, `nprobe`). storage:
+    "f32" or "f16" (scalar-quantised half floats: half the memory, same neighbours up to
     rounding)."""
 
     kind: str = "ivf"
     nlist: int = 1024
-    nprobe: int = 16
     storage: str = "f16"
 
     def factory_string(self) -> str:
@@ -77,16 +77,14 @@ def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int
 class PoseRetriever:
     """The five per-set indices of one database.
 
-    search(joints_2d (B, 14, 2), k) -> ids (B, 5, k) int64 entry ids, sets in SET_NAMES order.
+    search(joints_2d (B, 14, 2), k, nprobe) -> ids (B, 5, k) int64 entry ids, sets in SET_NAMES
+    order.
     """
 
     def __init__(self, db: PoseDatabase, config: IndexConfig = IndexConfig(), cache: bool = True):
         self.db = db
         self.config = config
         self.indices = [self._load_or_build(name, cache) for name in SET_NAMES]
-        for index in self.indices:
-            if hasattr(index, "nprobe"):
-                index.nprobe = config.nprobe
 
     def _load_or_build(self, joint_set: str, cache: bool):
         settings = "-".join(f"{k}{v}" for k, v in asdict(self.config).items())
@@ -101,11 +99,13 @@ class PoseRetriever:
             partial.replace(path)  # atomic: concurrent replicas never read half a file
         return index
 
-    def search(self, joints_2d: torch.Tensor, k: int) -> torch.Tensor:
-        """joints_2d: (B, 14, 2) float, any unit. Returns (B, 5, k) int64 entry ids (-1 where
-        an approximate index found fewer than k)."""
+    def search(self, joints_2d: torch.Tensor, k: int, nprobe: int = 8) -> torch.Tensor:
+        """joints_2d: (B, 14, 2) float, any unit; nprobe: inverted lists an IVF index visits.
+        Returns (B, 5, k) int64 entry ids (-1 where an approximate index found fewer than k)."""
         ids = []
         for name, index in zip(SET_NAMES, self.indices, strict=True):
+            if hasattr(index, "nprobe"):
+                index.nprobe = nprobe
             query = normalize_2d(joints_2d[:, list(JOINT_SETS[name])].float().cpu())
             query = np.ascontiguousarray(query.reshape(len(query), -1).numpy())
             _, found = index.search(query, k)
