@@ -50,12 +50,12 @@ class EstimatorParams:
     box_margin: float = 0.35  # context kept around a box, fraction of the extent per side
     stride: int = 3  # px between evaluated pixels (one unary cell)
     context_blur: int = 1  # box radius (cells) on layer-1 maps before layer 2 reads them
-    unary_blur: int = 1  # box radius (cells) on the final maps before the log
-    unary_weight: float = 1.0  # the PSM sees unary_weight * unaries (relative to the binaries)
+    unary_blur: int = 2  # box radius (cells) on the final maps before the log
+    unary_weight: float = 2.0  # the PSM sees unary_weight * unaries (relative to the binaries)
     n_scales: int = 6
     scale_factor: float = 0.85
     scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
-    observer_labels: bool = True  # cascade + PSM observer-centric, a facing forest decides
+    observer_labels: bool = False  # observer-centric cascade + PSM, a facing forest decides
 
 
 def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
