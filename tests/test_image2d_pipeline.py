@@ -89,7 +89,19 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert [f.n_trees for f in est.layers] == [3, 3]
     assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
     assert est.mixtures.n_components == 15
+    assert not est.params.observer_labels and est.facing is None
+
+
+@needs_data
+def test_observer_centric_model_trains_and_decides_facing(tmp_path):
+    argv = ["train-2d", "--small", "--no-eval", "--observer-labels", "--out", str(tmp_path)]
+    assert _cli(argv) == 0
+    est = PoseEstimator2D.load(tmp_path)
     assert est.params.observer_labels and est.facing.n_classes == 2
+    image = np.random.default_rng(2).integers(0, 256, (150, 100, 3), dtype=np.uint8)
+    res = est.estimate([image, image[:, ::-1].copy()])
+    assert res.facing_camera.shape == (2,)
+    assert ((res.facing_camera >= 0) & (res.facing_camera <= 1)).all()
 
 
 @needs_data

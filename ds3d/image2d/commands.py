@@ -44,6 +44,11 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    p.add_argument(
+        "--observer-labels",
+        action="store_true",
+        help="observer-centric cascade + facing forest (measured no better; see RESULTS_2D)",
+    )
     p.set_defaults(func=cmd_train)
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
@@ -68,7 +73,7 @@ def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     cfg = TrainConfig(seed=args.seed, **(SMALL if args.small else {}))
-    params = EstimatorParams()
+    params = EstimatorParams(observer_labels=args.observer_labels)
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
     manifest = train(cfg, params, args.out, evaluate=evaluate)
     print(json.dumps({k: manifest[k] for k in ("train_seconds_1_thread", "metrics")}, indent=2))
