@@ -1,14 +1,18 @@
 #!/usr/bin/env bash
-# Load-test matrix of /v1/lift on this machine: for each max_batch_size, start the service on
-# the bundled model (one model thread), run closed-loop tests at several concurrencies, stop it.
+# Load-test matrix on this machine: for each max_batch_size, start the service on the bundled
+# model (one model thread), run closed-loop tests at several concurrencies, stop it.
 #   docker/loadtest_matrix.sh [DURATION_S] [OUT_DIR]
-# Results: OUT_DIR/lift_closed_c{N}_b{B}.json (+ .png); summary lines on stdout.
+#   ENDPOINT=pose IMAGES=../shared/data/lsp/images docker/loadtest_matrix.sh   # real images
+# Results: OUT_DIR/{ENDPOINT}_closed_c{N}_b{B}.json (+ .png); summary lines on stdout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DURATION=${1:-20}
 OUT=${2:-out/loadtest}
 PORT=${PORT:-8765}
 PY=${PY:-.venv/bin/python}
+ENDPOINT=${ENDPOINT:-lift}
+IMAGE_ARGS=()
+[ "$ENDPOINT" = pose ] && IMAGE_ARGS=(--images "${IMAGES:?set IMAGES to a folder of images}")
 export OMP_NUM_THREADS=1
 
 for B in ${BATCH_SIZES:-1 16}; do
@@ -21,10 +25,11 @@ for B in ${BATCH_SIZES:-1 16}; do
         sleep 1
     done
     for C in ${CONCURRENCIES:-1 4 16 64}; do
-        $PY -m service.loadtest "http://127.0.0.1:$PORT" --mode closed --concurrency "$C" \
-            --duration "$DURATION" --out "$OUT" --name "lift_closed_c${C}_b${B}" --deadline 10 \
+        $PY -m service.loadtest "http://127.0.0.1:$PORT" --endpoint "$ENDPOINT" "${IMAGE_ARGS[@]}" \
+            --mode closed --concurrency "$C" --duration "$DURATION" --out "$OUT" \
+            --name "${ENDPOINT}_closed_c${C}_b${B}" --deadline 10 \
             | $PY -c "import json,sys; d=json.load(sys.stdin); l=d['latency_ms_ok'] or {}; \
-print('b=$B c=$C ok/s=%.2f p50=%s p95=%s p99=%s mean_batch=%.1f %s' % (d['ok_rps'], \
+print('$ENDPOINT b=$B c=$C ok/s=%.2f p50=%s p95=%s p99=%s mean_batch=%.1f %s' % (d['ok_rps'], \
 *[round(l[k]) if l else None for k in ('p50','p95','p99')], d['server_mean_batch_size'] or 0, d['status_counts']))"
     done
     kill -TERM $SERVER
