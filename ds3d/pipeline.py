@@ -148,12 +148,17 @@ def search_window(
 
     unaries: (14, h, w); cells: (N, 14, 2) grid cells (u, v); margin: cells added on every
     side. Cells beyond the unary grid read log(LOG_EPS), the 2D stage's own padding value, so
-    the window depends on the image alone, not on the batch it was padded into.
+    the window depends on the image alone, not on the batch it was padded into. The window
+    stays within `margin` cells of the grid: that bounds the work when projections run far off
+    the image (e.g. under wrong intrinsics), where a batch's larger padded grid could then give
+    an image a wider window than it gets alone.
     Returns the window (14, H, W) and its origin (2,) long (u, v) in the grid.
     """
-    lo = cells.flatten(0, 1).amin(0).floor().long() - margin  # (2,)
-    hi = cells.flatten(0, 1).amax(0).ceil().long() + margin
     h, w = unaries.shape[-2:]
+    bound = torch.tensor([w - 1 + margin, h - 1 + margin], device=cells.device)
+    flat = torch.nan_to_num(cells.flatten(0, 1), nan=0.0, posinf=1e6, neginf=-1e6)
+    lo = (flat.amin(0).floor().long() - margin).clamp(min=-margin).minimum(bound)  # (2,)
+    hi = (flat.amax(0).ceil().long() + margin).minimum(bound).maximum(lo)
     u = torch.arange(int(lo[0]), int(hi[0]) + 1, device=cells.device)
     v = torch.arange(int(lo[1]), int(hi[1]) + 1, device=cells.device)
     window = unaries[:, v.clamp(0, h - 1)[:, None], u.clamp(0, w - 1)[None, :]]

@@ -139,6 +139,10 @@ def test_search_window_reads_cells_and_pads_beyond_the_grid():
     assert window.shape == (NUM_JOINTS, 5, 5)  # v -1..3, u 0..4
     assert bool((window[:, 0] == np.log(LOG_EPS)).all())  # row v = -1 lies above the grid
     torch.testing.assert_close(window[:, 1:], unaries[:, 0:4, 0:5])
+    # projections far off the image: the window stays within the margin of the grid
+    far = torch.tensor([[-500.0, 2.0], [900.0, 3.0]]).repeat(NUM_JOINTS // 2, 1)[None]
+    window, origin = search_window(unaries, far, margin=1)
+    assert origin.tolist() == [-1, 1] and window.shape == (NUM_JOINTS, 4, 7)  # v 1..4, u -1..5
 
 
 def _batch(estimates: list[Estimate2D]) -> Estimate2D:
