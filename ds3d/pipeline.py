@@ -53,7 +53,7 @@ class PipelineConfig:
     region around the neighbours' projections (search_window). unary_weight: the refinement's
     unaries relative to the 2D stage's (EstimatorParams.unary_weight), against the binaries.
     min_var and unary_weight were chosen on LSP train im0901-im1000 (held out from the 2D
-    model's training; docs/RESULTS_PIPELINE.md); the margin did not matter there (4 or 8 cells).
+    model's training; docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
     """
 
     iterations: int = 2

@@ -24,7 +24,7 @@ class Settings(BaseSettings):
     max_wait_ms: float = Field(5.0, ge=0.0)
     # Items (not requests) allowed to wait; past this a request gets 503 at once. Keep
     # max_queue / throughput below request_timeout_s, or the overflow waits for a 504 instead
-    # of getting a quick 503 (measured in docs/RESULTS_SERVICE.md: 64 for ~12 poses/s).
+    # of getting a quick 503 (measured in docs/RESULTS.md, service: 64 for ~12 poses/s).
     max_queue: int = Field(64, ge=1)
     # A request not answered this long after it arrived gets 504.
     request_timeout_s: float = Field(10.0, gt=0.0)

@@ -1,7 +1,7 @@
 """Accuracy regression of the committed 2D model on the first 100 LSP test images.
 
 The floors are the PCK@0.2 measured with `ds3d eval lsp --limit 100` when the model was
-committed (docs/RESULTS_2D.md) minus a margin of 3 points, which absorbs float differences
+committed (docs/RESULTS.md, 2D stage) minus a margin of 3 points, which absorbs float differences
 across machines, not a real regression.
 """
 

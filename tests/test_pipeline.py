@@ -200,7 +200,7 @@ def test_predict_command_writes_json_and_a_picture(model_dir, data_dir, tmp_path
 
 # Measured with the bundled model on LSP test im1001-im1032: PCK@0.2 30.4 -> 28.8 %, mean error
 # 23.6 -> 23.0 px (on all 1000 test images 34.1 -> 35.8 %, 22.7 -> 22.1 px:
-# docs/RESULTS_PIPELINE.md). 32 images are too few for PCK to move reliably either way; the mean
+# docs/RESULTS.md, pipeline). 32 images are too few for PCK to move reliably either way; the mean
 # error is the gate, the PCK only against a collapse.
 REFINED_PCK, MARGIN = 0.2879, 0.03
 

@@ -47,7 +47,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument(
         "--observer-labels",
         action="store_true",
-        help="observer-centric cascade + facing forest (measured no better; see RESULTS_2D)",
+        help="observer-centric cascade + facing forest (measured no better; see docs/RESULTS.md)",
     )
     p.set_defaults(func=cmd_train)
 
