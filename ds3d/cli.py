@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
+from pathlib import Path
 
 COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.lift_commands",
@@ -29,6 +31,17 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(commands, evals, benches)
     return parser
+
+
+def write_report(report: dict, out: Path | None) -> None:
+    """A command's JSON report: to `out` (folders created) when given, else to stdout."""
+    text = json.dumps(report, indent=2)
+    if out is None:
+        print(text)
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text + "\n")
+    print(f"wrote {out}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:

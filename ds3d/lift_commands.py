@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ds3d.cli import write_report
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import SET_NAMES
 
@@ -83,16 +84,6 @@ def _load_lifter(args, **overrides):
     return Lifter.load(args.model_dir, args.device, config, args.database)
 
 
-def _write(report: dict, out: Path | None) -> None:
-    text = json.dumps(report, indent=2)
-    if out is None:
-        print(text)
-        return
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text + "\n")
-    print(f"wrote {out}", file=sys.stderr)
-
-
 def build_db(args) -> int:
     from ds3d.mocap.database import PoseDatabase
 
@@ -125,7 +116,7 @@ def lift(args) -> int:
     request = json.loads(args.input.read_text())
     lifter = _load_lifter(args)
     result = lifter.lift(request["joints_2d"], request.get("visible"), request.get("intrinsics"))
-    _write(
+    write_report(
         {
             "model": lifter.model_id,
             "joints_3d": result.joints_3d.numpy().round(2).tolist(),
@@ -183,7 +174,7 @@ def eval_h36m(args) -> int:
             f"{result['seconds']} s)",
             file=sys.stderr,
         )
-    _write(report, args.out)
+    write_report(report, args.out)
     return 0
 
 
@@ -230,7 +221,7 @@ def bench_lift(args) -> int:
         )
     report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     print(f"load {load_s:.1f} s, peak RSS {report['peak_rss_mb']} MB", file=sys.stderr)
-    _write(report, args.out)
+    write_report(report, args.out)
     return 0
 
 
@@ -274,5 +265,5 @@ def bench_retrieval(args) -> int:
         }
         print(f"nprobe {nprobe}: {report['ivf'][nprobe]}", file=sys.stderr)
     print(f"flat: {report['flat_ms_per_query']} ms/query (5 sets)", file=sys.stderr)
-    _write(report, args.out)
+    write_report(report, args.out)
     return 0

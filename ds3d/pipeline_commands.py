@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ds3d.cli import write_report
 from ds3d.paths import MODELS_DIR
 
 # The refinement table's variants (the paper's fig:query protocol: one iteration, K = 256
@@ -218,11 +219,7 @@ def eval_lsp(args) -> int:
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "results": {k: _metrics(torch.cat(v), gt) for k, v in preds.items()},
     }
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    write_report(report, args.out)
     return 0
 
 

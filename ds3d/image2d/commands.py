@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import torch
 
+from ds3d.cli import write_report
 from ds3d.data.lsp import PoseAnnotations, load_lsp
 from ds3d.evaluation.metrics import pck, pixel_error
 from ds3d.image2d.estimator import Estimate2D, EstimatorParams, PoseEstimator2D, read_manifest
@@ -127,11 +128,7 @@ def cmd_eval_lsp(args) -> int:
         ann = ann.subset(range(min(args.limit, len(ann))))
     result = {"dataset": "LSP test im1001-im2000", "model": str(args.model)}
     result |= evaluate(PoseEstimator2D.load(args.model), ann, batch=args.batch)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    write_report(result, args.out)
     if args.write_manifest:
         manifest = read_manifest(args.model)
         key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
