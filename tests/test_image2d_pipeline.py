@@ -78,6 +78,15 @@ def test_context_channels_and_valid_cells_follow_the_grid():
     valid = valid_cells([(5, 8), (2, 4)], 5, 8, 3)
     assert valid.shape == (2, 1, 2, 3)
     assert valid[0].all() and valid[1, 0].tolist() == [[True, True, False], [False, False, False]]
+    # In a zero-padded batch each image reads only its own cells, as alone: a 6 px wide image
+    # has cells 0-1, and its last pixel column reads cell 1 (not the batch's cell 2).
+    maps = torch.rand(2, 14, 3, 4)
+    sizes = [(7, 6), (9, 12)]
+    batch = context_channels(maps, stride=3, height=9, width=12, sizes=sizes)
+    for i, (h, w) in enumerate(sizes):
+        gh, gw = -(-h // 3), -(-w // 3)
+        alone = context_channels(maps[i : i + 1, :, :gh, :gw], stride=3, height=h, width=w)
+        torch.testing.assert_close(batch[i : i + 1, :, :h, :w], alone)
 
 
 @needs_data
@@ -114,10 +123,13 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
     assert res.unaries.shape[:2] == (2, 14) and (res.unaries <= 0).all()
     assert set(res.timings) == {"features", "traversal", "psm", "total"}
-    # each image alone gives the same pose as in the batch (padding does not leak)
+    # each image alone gives the same pose and unaries as in the batch (padding does not leak,
+    # not even into the cells at an image's right and bottom edges)
     for i in range(2):
         alone = est.estimate([images[i]], bboxes=[[None, (100, 40, 160, 200)][i]])
         torch.testing.assert_close(alone.joints_2d[0], res.joints_2d[i])
+        h, w = alone.unaries.shape[-2:]
+        torch.testing.assert_close(alone.unaries[0], res.unaries[i, :, :h, :w])
     # the box crop: joints land in the image, near the box
     assert (res.joints_2d[1, :, 0] > 20).all() and (res.joints_2d[1, :, 0] < 240).all()
 

@@ -42,6 +42,9 @@ def register(commands, evals, benches) -> None:
     p = commands.add_parser("train-2d", help="train the 2D pose model (forest cascade + PSM)")
     p.add_argument("--out", type=Path, default=DEFAULT_MODEL)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--n-val", type=int, default=100, help="last LSP train images held out for validation"
+    )
     p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
@@ -73,7 +76,7 @@ def register(commands, evals, benches) -> None:
 def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    cfg = TrainConfig(seed=args.seed, **(SMALL if args.small else {}))
+    cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
     params = EstimatorParams(observer_labels=args.observer_labels)
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
     manifest = train(cfg, params, args.out, evaluate=evaluate)

@@ -1,5 +1,5 @@
-"""Image -> 2D pose: scale normalisation, a 6-scale pyramid, a two-layer forest cascade for the
-unaries, and the pictorial structure model (ds3d.image2d.psm) on each scale.
+"""Image -> 2D pose: scale normalisation, a 6-scale pyramid, a forest cascade for the unaries,
+and the pictorial structure model (ds3d.image2d.psm) on each scale.
 
 Working scale. Training rescales every image so that the person's extent (the longer side of
 the box around its joints) is `canonical_extent` pixels; the PSM's offsets are learnt at that
@@ -8,9 +8,9 @@ filling it would have that extent, then the pyramid tries `n_scales` scales
 `start * factor**k` around it and keeps, per image, the scale whose PSM score is best.
 
 Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background from image
-channels. Layer 2 (auto-context) splits on the image channels AND on layer 1's joint probability
-maps, read at offsets, which lets it use where the other joints probably are. Unaries are
-log(box-blurred layer-2 probabilities).
+channels. Each later layer (auto-context) splits on the image channels AND on the previous
+layer's joint probability maps, read at offsets, which lets it use where the other joints
+probably are. Unaries are log(box-blurred probabilities of the last layer).
 
 Left and right. The cascade and the PSM work with observer-centric labels (the arm whose
 shoulder is on the image's left is "right"; see ds3d.image2d.train). A two-class facing forest,
@@ -78,19 +78,32 @@ def grid_positions(height: int, width: int, stride: int) -> tuple[torch.Tensor, 
     return torch.stack([yy.reshape(-1), xx.reshape(-1)], dim=1), len(ys), len(xs)
 
 
-def context_channels(probs: torch.Tensor, stride: int, height: int, width: int) -> torch.Tensor:
-    """Layer-1 joint maps on the grid -> full-resolution channels by nearest grid cell.
+def context_channels(
+    maps: torch.Tensor,
+    stride: int,
+    height: int,
+    width: int,
+    sizes: list[tuple[int, int]] | None = None,
+) -> torch.Tensor:
+    """A layer's joint probability maps on the grid -> full-resolution channels by nearest grid
+    cell.
 
-    probs: (B, 14, gh, gw) -> (B, 14, height, width) float32.
+    maps: (B, 14, gh, gw); sizes: None (every image fills height x width) or B (h, w) sizes of
+    the images in a zero-padded batch: each image's pixels then read only its own cells, as
+    alone -> (B, 14, height, width) float32.
     """
-    gh, gw = probs.shape[-2:]
-    iy = torch.div(torch.arange(height) + stride // 2, stride, rounding_mode="floor").clamp_max(
-        gh - 1
-    )
-    ix = torch.div(torch.arange(width) + stride // 2, stride, rounding_mode="floor").clamp_max(
-        gw - 1
-    )
-    return probs[:, :, iy[:, None], ix[None, :]].contiguous()
+    b, _, gh, gw = maps.shape
+    if sizes is None:
+        last = torch.tensor([[gh - 1, gw - 1]]).expand(b, 2)
+    else:
+        last = torch.tensor([[(h - 1) // stride, (w - 1) // stride] for h, w in sizes])
+    iy = torch.div(torch.arange(height) + stride // 2, stride, rounding_mode="floor")
+    ix = torch.div(torch.arange(width) + stride // 2, stride, rounding_mode="floor")
+    iy = torch.minimum(iy[None], last[:, :1])  # (B, height)
+    ix = torch.minimum(ix[None], last[:, 1:])  # (B, width)
+    batch = torch.arange(b).view(b, 1, 1, 1)
+    joint = torch.arange(maps.shape[1]).view(1, -1, 1, 1)
+    return maps[batch, joint, iy[:, None, :, None], ix[:, None, None, :]]
 
 
 def cascade_probs(
@@ -109,20 +122,20 @@ def cascade_probs(
     """
     b, _, h, w = channels.shape
     positions, gh, gw = grid_positions(h, w, params.stride)
+    # In a padded batch, cells outside an image are zeroed: as around a single image.
+    inside = None if sizes is None else valid_cells(sizes, h, w, params.stride)
     outputs = []
     stack = channels
     for i, forest in enumerate(layers):
         if i > 0:
             prev = outputs[-1][:, :NUM_JOINTS]
-            if sizes is None:
-                ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w)
-            else:
-                prev = prev * valid_cells(sizes, h, w, params.stride)
-                ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w)
+            ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w, sizes)
+            if inside is not None:
                 ctx = ctx * valid_cells(sizes, h, w, 1)
             stack = torch.cat([channels, ctx], dim=1)
         probs = predict_proba(forest, pad_channels(stack, forest.radius), positions)
-        outputs.append(probs.permute(0, 2, 1).reshape(b, -1, gh, gw))
+        probs = probs.permute(0, 2, 1).reshape(b, -1, gh, gw)
+        outputs.append(probs if inside is None else probs * inside)
     return outputs
 
 
@@ -250,7 +263,7 @@ class PoseEstimator2D:
     """Image -> 2D pose with the trained cascade and PSM of a model directory.
 
     Load with PoseEstimator2D.load(model_dir) (default: models/image2d); the directory holds
-    manifest.json (params, layer files), forest1.pt, forest2.pt, psm.pt.
+    manifest.json (params, layer files), forest1.pt, forest2.pt, ..., psm.pt.
     """
 
     def __init__(

@@ -1,12 +1,13 @@
-"""Training of the 2D stage: a two-layer forest cascade and the PSM's pairwise mixtures.
+"""Training of the 2D stage: a forest cascade and the PSM's pairwise mixtures.
 
 Data: LSP train (im0001-im1000, minus the last `n_val` images, held out for validation) and
 LSPet (10,000). Every image is rescaled so that its person spans `canonical_extent` px
-(estimator.EstimatorParams). The images are split in two halves: layer 1 grows on one half;
-layer 2 grows on the other, reading layer 1's maps computed on images layer 1 never saw, so
-that its context features see maps as noisy as at test time (stacking without leakage).
+(estimator.EstimatorParams). The images are split into one share per cascade layer: layer 1
+grows on the first; each later layer grows on its own share, reading the maps of the layers
+before it computed on images they never saw, so that its context features see maps as noisy as
+at test time (stacking without leakage).
 
-Labels are observer-centric by default (`EstimatorParams.observer_labels`): in every training
+Labels can be observer-centric (`EstimatorParams.observer_labels`): in every training
 image the arm whose shoulder is on the image's left is called "right", and likewise the leg by
 its hip, which is what local image evidence can tell. Whether the person faces the camera (then
 person-centric = observer-centric) or away (then left and right swap) is learnt by a separate
@@ -275,7 +276,7 @@ def grow_facing(
     return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS)
 
 
-def layer1_contexts(
+def cascade_contexts(
     ann: PoseAnnotations,
     items: list[tuple[int, bool]],
     layers: list[Forest],
@@ -339,27 +340,28 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     train_ann, _ = training_annotations(cfg)
-    order = rng.permutation(len(train_ann))
-    n1 = len(order) // 2 if len(cfg.trees) > 1 else len(order)
-    items1 = [(int(i), False) for i in order[:n1]]
-    items2 = [(int(i), bool(rng.random() < 0.5)) for i in order[n1:]]
+    # One disjoint share of the images per layer: a context layer reads the maps of the layers
+    # before it on images they never saw (stacking without leakage). Layer 1 draws a flip per
+    # tree and image; later layers read precomputed maps, so each of their images has one flip.
+    shares = np.array_split(rng.permutation(len(train_ann)), len(cfg.trees))
+    items = [[(int(i), False) for i in shares[0]]] + [
+        [(int(i), bool(rng.random() < 0.5)) for i in share] for share in shares[1:]
+    ]
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    layers = [grow_layer(train_ann, items1, None, cfg.trees[0], cfg, params, rng)]
+    layers = [grow_layer(train_ann, items[0], None, cfg.trees[0], cfg, params, rng)]
     timings = {"layer1": time.perf_counter() - t0}
-    for depth, n_trees in enumerate(cfg.trees[1:], start=2):
+    for depth, (n_trees, share) in enumerate(zip(cfg.trees[1:], items[1:], strict=True), 2):
         t1 = time.perf_counter()
-        contexts = layer1_contexts(train_ann, items2, layers, params)
-        log.info(
-            "layer-%d inputs of %d images: %.1fs", depth, len(items2), time.perf_counter() - t1
-        )
-        layers.append(grow_layer(train_ann, items2, contexts, n_trees, cfg, params, rng))
+        contexts = cascade_contexts(train_ann, share, layers, params)
+        log.info("layer-%d inputs of %d images: %.1fs", depth, len(share), time.perf_counter() - t1)
+        layers.append(grow_layer(train_ann, share, contexts, n_trees, cfg, params, rng))
         timings[f"layer{depth}"] = time.perf_counter() - t1
     for i, forest in enumerate(layers):
         save_forest(forest, out_dir / f"forest{i + 1}.pt")
     if params.observer_labels:
         t1 = time.perf_counter()
-        save_forest(grow_facing(train_ann, items1, cfg, params, rng), out_dir / "facing.pt")
+        save_forest(grow_facing(train_ann, items[0], cfg, params, rng), out_dir / "facing.pt")
         timings["facing"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
