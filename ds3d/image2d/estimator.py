@@ -12,10 +12,11 @@ channels. Each later layer (auto-context) splits on the image channels AND on th
 layer's joint probability maps, read at offsets, which lets it use where the other joints
 probably are. Unaries are log(box-blurred probabilities of the last layer).
 
-Left and right. The cascade and the PSM work with observer-centric labels (the arm whose
-shoulder is on the image's left is "right"; see ds3d.image2d.train). A two-class facing forest,
-read at the PSM's head top, neck and shoulders, says whether the person faces the camera; if
-not, left and right are swapped at the end, so results are person-centric like LSP's labels.
+Left and right. With `observer_labels` (off in the bundled model), the cascade and the PSM work
+with observer-centric labels (the arm whose shoulder is on the image's left is "right"; see
+ds3d.image2d.train). A two-class facing forest, read at the PSM's head top, neck and
+shoulders, says whether the person faces the camera; if not, left and right are swapped at the
+end, so results are person-centric like LSP's labels.
 """
 
 from __future__ import annotations
@@ -124,14 +125,15 @@ def cascade_probs(
     positions, gh, gw = grid_positions(h, w, params.stride)
     # In a padded batch, cells outside an image are zeroed: as around a single image.
     inside = None if sizes is None else valid_cells(sizes, h, w, params.stride)
+    inside_px = None if sizes is None else valid_cells(sizes, h, w, 1)
     outputs = []
     stack = channels
     for i, forest in enumerate(layers):
         if i > 0:
             prev = outputs[-1][:, :NUM_JOINTS]
             ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w, sizes)
-            if inside is not None:
-                ctx = ctx * valid_cells(sizes, h, w, 1)
+            if inside_px is not None:
+                ctx = ctx * inside_px
             stack = torch.cat([channels, ctx], dim=1)
         probs = predict_proba(forest, pad_channels(stack, forest.radius), positions)
         probs = probs.permute(0, 2, 1).reshape(b, -1, gh, gw)
@@ -345,7 +347,7 @@ class PoseEstimator2D:
             valid = valid_cells(sizes, hmax, wmax, p.stride)  # (B, 1, gh, gw)
             t1 = now()
             probs = cascade_probs(self.layers, channels, p, sizes)[-1]
-            unaries = unaries_from_probs(probs * valid, p.unary_blur)
+            unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
             unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
             t2 = now()
             res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
