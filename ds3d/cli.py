@@ -7,6 +7,7 @@ arguments are argparse sub-parser collections for `ds3d <cmd>`, `ds3d eval <what
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import json
 import sys
@@ -31,6 +32,29 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(commands, evals, benches)
     return parser
+
+
+def field_overrides(cls, items: list[str]) -> dict:
+    """`--set NAME=VALUE` items -> {field: value} for the dataclass `cls`, each value converted
+    to the type of the field's default (bools from true/false/1/0). Exits with a message on an
+    unknown field or a value that does not convert."""
+    types = {f.name: type(f.default) for f in dataclasses.fields(cls)}
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if key not in types:
+            raise SystemExit(f"--set {item}: not a {cls.__name__} field ({', '.join(types)})")
+        kind = types[key]
+        try:
+            if kind is bool:
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(value)
+                out[key] = value.lower() in ("true", "1")
+            else:
+                out[key] = kind(value)
+        except ValueError:
+            raise SystemExit(f"--set {item}: {value!r} is not a {kind.__name__}") from None
+    return out
 
 
 def write_report(report: dict, out: Path | None) -> None:

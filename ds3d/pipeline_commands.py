@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ds3d.cli import write_report
+from ds3d.cli import field_overrides, write_report
 from ds3d.paths import MODELS_DIR
 
 # The refinement table's variants (the paper's fig:query protocol: one iteration, K = 256
@@ -229,13 +229,7 @@ def _configs(name: str, overrides: list[str] = ()):
     from ds3d.pipeline import PipelineConfig
 
     config, lifter_config = VARIANTS[name]
-    types = {f.name: type(f.default) for f in dataclasses.fields(PipelineConfig)}
-    extra = {}
-    for item in overrides:
-        key, _, value = item.partition("=")
-        if key not in types:
-            raise SystemExit(f"--set {item}: not a PipelineConfig field ({', '.join(types)})")
-        extra[key] = types[key](value)
+    extra = field_overrides(PipelineConfig, overrides)
     return PipelineConfig(**(config | extra)), LifterConfig(**lifter_config)
 
 

@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from ds3d.cli import field_overrides
 from ds3d.errors import InvalidImage
 from ds3d.image2d import commands
 from ds3d.image2d.estimator import (
@@ -99,6 +100,29 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
     assert est.mixtures.n_components == 15
     assert not est.params.observer_labels and est.facing is None
+
+
+@needs_data
+def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_path):
+    out = tmp_path / "val.json"
+    argv = ["lsp", "--model", str(small_model), "--split", "train", "--start", "990"]
+    argv += ["--set", "n_scales=2", "--out", str(out)]
+    assert _cli(["eval", *argv]) == 0
+    report = json.loads(out.read_text())
+    assert report["dataset"] == "LSP train im0991-im1000" and report["n_images"] == 10
+    assert report["overrides"] == ["n_scales=2"]
+    for name in ("psm", "forest_argmax"):
+        assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
+    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5"]
+    assert field_overrides(EstimatorParams, overrides) == {
+        "observer_labels": False,
+        "stride": 4,
+        "unary_weight": 1.5,
+    }
+    with pytest.raises(SystemExit, match="not a EstimatorParams field"):
+        _cli(["eval", "lsp", "--model", str(small_model), "--set", "n_scale=2"])
+    with pytest.raises(SystemExit, match="is not a bool"):
+        _cli(["eval", "lsp", "--model", str(small_model), "--set", "observer_labels=maybe"])
 
 
 @needs_data

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -12,7 +13,7 @@ import cv2
 import numpy as np
 import torch
 
-from ds3d.cli import write_report
+from ds3d.cli import field_overrides, write_report
 from ds3d.data.lsp import PoseAnnotations, load_lsp
 from ds3d.evaluation.metrics import pck, pixel_error
 from ds3d.image2d.estimator import Estimate2D, EstimatorParams, PoseEstimator2D, read_manifest
@@ -57,20 +58,46 @@ def register(commands, evals, benches) -> None:
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
     e.add_argument("--model", type=Path, default=DEFAULT_MODEL)
-    e.add_argument("--limit", type=int, default=None, help="first N test images only")
+    e.add_argument(
+        "--split",
+        choices=("test", "train"),
+        default="test",
+        help="train: for tuning on the images a model holds out (see --start)",
+    )
+    e.add_argument("--start", type=int, default=0, help="skip the split's first n images")
+    e.add_argument("--limit", type=int, default=None, help="first N images only (after --start)")
     e.add_argument("--batch", type=int, default=16)
     e.add_argument("--threads", type=int, default=1)
     e.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     e.add_argument(
         "--write-manifest", action="store_true", help="record the metrics in the model manifest"
     )
+    _set_option(e)
     e.set_defaults(func=cmd_eval_lsp)
 
     b = benches.add_parser("2d", help="images/s of the 2D stage, time per step")
     b.add_argument("--model", type=Path, default=DEFAULT_MODEL)
     b.add_argument("--threads", type=int, default=1)
     b.add_argument("--repeats", type=int, default=3)
+    _set_option(b)
     b.set_defaults(func=cmd_bench)
+
+
+def _set_option(parser) -> None:
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override an EstimatorParams field of the model at inference (e.g. n_scales=4)",
+    )
+
+
+def load_estimator(args) -> PoseEstimator2D:
+    """The model of --model with the --set overrides of its inference parameters."""
+    est = PoseEstimator2D.load(args.model)
+    est.params = dataclasses.replace(est.params, **field_overrides(EstimatorParams, args.set))
+    return est
 
 
 def cmd_train(args) -> int:
@@ -126,13 +153,21 @@ def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dic
 
 def cmd_eval_lsp(args) -> int:
     torch.set_num_threads(args.threads)
-    ann = load_lsp(split="test")
-    if args.limit is not None:
-        ann = ann.subset(range(min(args.limit, len(ann))))
-    result = {"dataset": "LSP test im1001-im2000", "model": str(args.model)}
-    result |= evaluate(PoseEstimator2D.load(args.model), ann, batch=args.batch)
+    est = load_estimator(args)
+    ann = load_lsp(split=args.split)
+    end = len(ann) if args.limit is None else min(args.start + args.limit, len(ann))
+    ann = ann.subset(range(args.start, end))
+    first = 1 if args.split == "train" else 1001
+    result = {
+        "dataset": f"LSP {args.split} im{first + args.start:04d}-im{first + end - 1:04d}",
+        "model": str(args.model),
+        "overrides": args.set,
+    }
+    result |= evaluate(est, ann, batch=args.batch)
     write_report(result, args.out)
     if args.write_manifest:
+        if args.split != "test" or args.start or args.set:
+            raise SystemExit("--write-manifest records LSP test results of the model as saved")
         manifest = read_manifest(args.model)
         key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
         manifest.setdefault("metrics", {})[key] = result
@@ -154,7 +189,7 @@ def _bench_images(size: tuple[int, int] | None, n: int) -> list[np.ndarray]:
 
 def cmd_bench(args) -> int:
     torch.set_num_threads(args.threads)
-    est = PoseEstimator2D.load(args.model)
+    est = load_estimator(args)
     rows = []
     for label, size in (("lsp-sized", None), ("640x480", (640, 480))):
         images = _bench_images(size, 16)
