@@ -44,7 +44,10 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_MODEL)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
-        "--n-val", type=int, default=100, help="last LSP train images held out for validation"
+        "--n-val",
+        type=int,
+        default=TrainConfig.n_val,
+        help="last LSP train images held out for validation",
     )
     p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
     p.add_argument("--threads", type=int, default=1)
