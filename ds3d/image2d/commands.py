@@ -155,6 +155,8 @@ def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dic
 
 
 def cmd_eval_lsp(args) -> int:
+    if args.write_manifest and (args.split != "test" or args.start or args.set):
+        raise SystemExit("--write-manifest records LSP test results of the model as saved")
     torch.set_num_threads(args.threads)
     est = load_estimator(args)
     ann = load_lsp(split=args.split)
@@ -169,8 +171,6 @@ def cmd_eval_lsp(args) -> int:
     result |= evaluate(est, ann, batch=args.batch)
     write_report(result, args.out)
     if args.write_manifest:
-        if args.split != "test" or args.start or args.set:
-            raise SystemExit("--write-manifest records LSP test results of the model as saved")
         manifest = read_manifest(args.model)
         key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
         manifest.setdefault("metrics", {})[key] = result
