@@ -93,7 +93,7 @@ def test_context_channels_and_valid_cells_follow_the_grid():
 @needs_data
 def test_small_training_writes_a_loadable_model(small_model):
     manifest = json.loads((small_model / "manifest.json").read_text())
-    assert manifest["seed"] == 3 and manifest["layers"] == ["forest1.pt", "forest2.pt"]
+    assert manifest["seed"] == 3 and manifest["layers"] == ["forest1.pt.gz", "forest2.pt.gz"]
     assert "LSPet" in manifest["data"]["train"]
     est = PoseEstimator2D.load(small_model)
     assert [f.n_trees for f in est.layers] == [3, 3]

@@ -357,11 +357,13 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         log.info("layer-%d inputs of %d images: %.1fs", depth, len(share), time.perf_counter() - t1)
         layers.append(grow_layer(train_ann, share, contexts, n_trees, cfg, params, rng))
         timings[f"layer{depth}"] = time.perf_counter() - t1
-    for i, forest in enumerate(layers):
-        save_forest(forest, out_dir / f"forest{i + 1}.pt")
-    if params.observer_labels:
+    layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
+    for forest, name in zip(layers, layer_files, strict=True):
+        save_forest(forest, out_dir / name)
+    facing_file = "facing.pt.gz" if params.observer_labels else None
+    if facing_file:
         t1 = time.perf_counter()
-        save_forest(grow_facing(train_ann, items[0], cfg, params, rng), out_dir / "facing.pt")
+        save_forest(grow_facing(train_ann, items[0], cfg, params, rng), out_dir / facing_file)
         timings["facing"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
@@ -379,9 +381,9 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         "seed": cfg.seed,
         "train_config": asdict(cfg),
         "params": asdict(params),
-        "layers": [f"forest{i + 1}.pt" for i in range(len(layers))],
+        "layers": layer_files,
         "psm": "psm.pt",
-        "facing": "facing.pt" if params.observer_labels else None,
+        "facing": facing_file,
         "train_seconds_1_thread": {k: round(v, 1) for k, v in timings.items()},
         "metrics": {},
     }
