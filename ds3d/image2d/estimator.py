@@ -214,9 +214,9 @@ def save_forest(forest: Forest, path: Path) -> None:
 
 
 def load_forest(path: Path) -> Forest:
-    """A forest written by save_forest (or, without the .gz suffix, by a plain torch.save)."""
+    """A forest written by save_forest."""
     try:
-        with (gzip.open if path.suffix == ".gz" else open)(path, "rb") as f:
+        with gzip.open(path, "rb") as f:
             data = io.BytesIO(f.read())  # torch.load wants a seekable file
         return Forest.from_dict(torch.load(data, weights_only=True))
     except (OSError, EOFError, KeyError, RuntimeError) as exc:

@@ -64,7 +64,7 @@ class TrainConfig:
     n_val: int = 300  # last LSP train images held out for validation
     max_images: int | None = None  # cap on training images (small mode)
     trees: tuple[int, ...] = (16, 16)  # trees per cascade layer
-    images_per_tree: int = 4000  # of the ~5,300 in a layer's share; 2000 measured 2.5 points worse
+    images_per_tree: int = 4000  # of the ~5,350 in a layer's share; 2000 measured 2.5 points worse
     pool_size: int = 512  # random comparisons offered to each tree
     radius: int = 40  # max offset of a comparison, px at the working scale
     pos_per_joint: int = 8
