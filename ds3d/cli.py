@@ -7,10 +7,10 @@ arguments are argparse sub-parser collections for `ds3d <cmd>`, `ds3d eval <what
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib
 import json
 import sys
+import typing
 from pathlib import Path
 
 COMMAND_MODULES: tuple[str, ...] = (
@@ -36,25 +36,34 @@ def build_parser() -> argparse.ArgumentParser:
 
 def field_overrides(cls, items: list[str]) -> dict:
     """`--set NAME=VALUE` items -> {field: value} for the dataclass `cls`, each value converted
-    to the type of the field's default (bools from true/false/1/0). Exits with a message on an
-    unknown field or a value that does not convert."""
-    types = {f.name: type(f.default) for f in dataclasses.fields(cls)}
+    to the field's annotated type (bools from true/false/1/0; `none` for optional fields).
+    Exits with a message on an unknown field or a value that does not convert."""
+    types = typing.get_type_hints(cls)
     out = {}
     for item in items:
         key, _, value = item.partition("=")
         if key not in types:
             raise SystemExit(f"--set {item}: not a {cls.__name__} field ({', '.join(types)})")
-        kind = types[key]
         try:
-            if kind is bool:
-                if value.lower() not in ("true", "false", "1", "0"):
-                    raise ValueError(value)
-                out[key] = value.lower() in ("true", "1")
-            else:
-                out[key] = kind(value)
+            out[key] = _convert(types[key], value)
         except ValueError:
-            raise SystemExit(f"--set {item}: {value!r} is not a {kind.__name__}") from None
+            name = getattr(types[key], "__name__", str(types[key]))
+            raise SystemExit(f"--set {item}: {value!r} is not a {name}") from None
     return out
+
+
+def _convert(kind, value: str):
+    """A --set value as `kind`: bool, int, float, str or an optional (`X | None`) of them."""
+    options = typing.get_args(kind)
+    if type(None) in options:
+        if value.lower() == "none":
+            return None
+        (kind,) = (o for o in options if o is not type(None))
+    if kind is bool:
+        if value.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(value)
+        return value.lower() in ("true", "1")
+    return kind(value)
 
 
 def write_report(report: dict, out: Path | None) -> None:

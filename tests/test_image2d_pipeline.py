@@ -2,6 +2,8 @@
 
 import argparse
 import json
+import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -113,12 +115,16 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
     assert report["overrides"] == ["n_scales=2"]
     for name in ("psm", "forest_argmax"):
         assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
-    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5"]
+    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "select_stride=none"]
     assert field_overrides(EstimatorParams, overrides) == {
         "observer_labels": False,
         "stride": 4,
         "unary_weight": 1.5,
+        "select_stride": None,
     }
+    assert field_overrides(EstimatorParams, ["select_stride=6"]) == {"select_stride": 6}
+    with pytest.raises(SystemExit, match=re.escape("is not a int | None")):
+        field_overrides(EstimatorParams, ["select_stride=six"])
     with pytest.raises(SystemExit, match="not a EstimatorParams field"):
         _cli(["eval", "lsp", "--model", str(small_model), "--set", "n_scale=2"])
     with pytest.raises(SystemExit, match="is not a bool"):
@@ -156,6 +162,24 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
         torch.testing.assert_close(alone.unaries[0], res.unaries[i, :, :h, :w])
     # the box crop: joints land in the image, near the box
     assert (res.joints_2d[1, :, 0] > 20).all() and (res.joints_2d[1, :, 0] < 240).all()
+
+
+@needs_data
+def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model):
+    est = PoseEstimator2D.load(small_model)
+    p = est.params
+    assert (p.select_stride, p.stride, p.unary_blur) == (6, 3, 2)
+    rng = np.random.default_rng(4)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 200, 3))]
+    res = est.estimate(images)
+    coarse = replace(p, stride=6, unary_blur=1, select_stride=None)  # blur 2 cells of 3 px
+    coarse = PoseEstimator2D(est.layers, est.mixtures, coarse)
+    for i, image in enumerate(images):
+        scores = [coarse.estimate([image], scales=[s]).score.item() for s in est.scales()]
+        chosen = est.scales()[int(np.argmax(scores))]
+        fine = est.estimate([image], scales=[chosen])
+        torch.testing.assert_close(fine.joints_2d[0], res.joints_2d[i])
+        torch.testing.assert_close(fine.score[0], res.score[i])
 
 
 @needs_data

@@ -148,25 +148,23 @@ def pad_channels(channels: torch.Tensor, radius: int) -> torch.Tensor:
     return out
 
 
-def comparison_offsets(
-    channel: torch.Tensor,
-    dy1: torch.Tensor,
-    dx1: torch.Tensor,
-    dy2: torch.Tensor,
-    dx2: torch.Tensor,
-    use2: torch.Tensor,
-    padded_shape: tuple[int, int, int],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat offsets of a comparison's two reads, relative to the pixel, in one image's padded
-    stack of shape padded_shape = (C + 1, Hp, Wp). All inputs (F,) -> two (F,) int64."""
-    c1, hp, wp = padded_shape
-    plane = hp * wp
-    ch = channel.long() * plane
-    base1 = ch + dy1.long() * wp + dx1.long()
-    base2 = torch.where(
-        use2 > 0, ch + dy2.long() * wp + dx2.long(), torch.full_like(ch, (c1 - 1) * plane)
-    )
-    return base1, base2
+def second_reads(
+    channel: torch.Tensor, dy2: torch.Tensor, dx2: torch.Tensor, use2: torch.Tensor, zero_plane: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Channel and offset of each comparison's second read: its own where use2 = 1, else the
+    all-zero plane (channel `zero_plane`, pad_channels' last) at the pixel itself, so that every
+    comparison is the same two reads and one subtraction. All (F,) -> three (F,) tensors."""
+    use = use2 > 0
+    return torch.where(use, channel, zero_plane), torch.where(use, dy2, 0), torch.where(use, dx2, 0)
+
+
+def read_offsets(
+    channel: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor, padded_shape: tuple[int, int, int]
+) -> torch.Tensor:
+    """Flat offset of a read (channel, dy, dx), relative to the pixel, in one image's padded
+    stack of shape padded_shape = (C + 1, Hp, Wp). (F,) integer tensors -> (F,), same dtype."""
+    _, hp, wp = padded_shape
+    return channel * (hp * wp) + dy * wp + dx
 
 
 def evaluate_pool(
@@ -181,15 +179,10 @@ def evaluate_pool(
     _, _, wp = padded.shape
     flat = padded.reshape(-1)
     pix = (positions[:, 0] + radius) * wp + (positions[:, 1] + radius)  # (P,)
+    channel = torch.as_tensor(pool.channel)
     o1 = torch.as_tensor(pool.offset1)
     o2 = torch.as_tensor(pool.offset2)
-    base1, base2 = comparison_offsets(
-        torch.as_tensor(pool.channel),
-        o1[:, 0],
-        o1[:, 1],
-        o2[:, 0],
-        o2[:, 1],
-        torch.as_tensor(pool.use2),
-        tuple(padded.shape),
-    )
+    second = second_reads(channel, o2[:, 0], o2[:, 1], torch.as_tensor(pool.use2), len(padded) - 1)
+    base1 = read_offsets(channel, o1[:, 0], o1[:, 1], tuple(padded.shape))
+    base2 = read_offsets(*second, tuple(padded.shape))
     return flat[pix[:, None] + base1[None, :]] - flat[pix[:, None] + base2[None, :]]
