@@ -199,8 +199,8 @@ def test_predict_command_writes_json_and_a_picture(model_dir, data_dir, tmp_path
 
 
 # Measured with the bundled model on LSP test im1001-im1032: PCK@0.2 31.0 -> 33.0 %, mean error
-# 23.54 -> 22.53 px (all 1000 test images: docs/RESULTS.md, pipeline). 32 images are too few for PCK to move reliably either way; the mean
-# error is the gate, the PCK only against a collapse.
+# 23.54 -> 22.53 px (all 1000 test images: docs/RESULTS.md, pipeline). 32 images are too few for
+# PCK to move reliably either way; the mean error is the gate, the PCK only against a collapse.
 REFINED_PCK, MARGIN = 0.3304, 0.03
 
 
