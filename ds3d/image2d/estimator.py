@@ -359,6 +359,7 @@ class PoseEstimator2D:
                 cand = self._one_scale(crops, rel, p, timings)
                 best = cand if best is None else _keep_better(best, cand)
         else:
+            # The coarse pass blurs its unaries over the same pixels (at least one cell).
             coarse = replace(
                 p,
                 stride=p.select_stride,
