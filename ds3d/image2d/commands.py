@@ -215,7 +215,14 @@ def cmd_bench(args) -> int:
             )
             print(json.dumps(rows[-1]), flush=True)
     print(
-        json.dumps({"threads": args.threads, "scales": est.scales(), "stride": est.params.stride}),
+        json.dumps(
+            {
+                "threads": args.threads,
+                "scales": est.scales(),
+                "stride": est.params.stride,
+                "select_stride": est.params.select_stride,
+            }
+        ),
         file=sys.stderr,
     )
     return 0
