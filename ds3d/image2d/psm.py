@@ -15,7 +15,7 @@ small k-means clusters the correlation hardly matters: with the same clusters fi
 mirrors), the mean log-density of held-out LSP-train limb offsets was -7.986 (diagonal) vs
 -7.992 (full) nats at C = 15, and -8.019 vs -8.004 at C = 5.
 
-The same `fit_pairwise_mixtures` serves training (B = 1, all annotated poses, C = 15) and the
+The same `fit_pairwise_mixtures` serves training (B = 1, all annotated poses, C = 3) and the
 3D stage (eqt:best_segments_pose: B = batch x joint sets, the projected candidates, C = 5).
 `infer` runs max-product from the leaves to the root (the neck) and back-tracks the MAP pose.
 

@@ -74,7 +74,9 @@ class TrainConfig:
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
-    psm_components: int = 15
+    # The paper has 15; on the 300 held-out images 3 scored best (C = 1 / 3 / 5 / 8 / 15: 38.2 /
+    # 40.2 / 39.2 / 38.2 / 39.0 % PCK@0.2), within the noise of 15 and with a 5x cheaper PSM.
+    psm_components: int = 3
     psm_iterations: int = 50
 
 
