@@ -314,7 +314,8 @@ class PoseEstimator2D:
         self, channels: torch.Tensor, cells: torch.Tensor, sizes: list[tuple[int, int]], stride: int
     ) -> torch.Tensor:
         """P(faces the camera) from the facing forest at the PSM's head top, neck and
-        shoulders. channels: (B, 12, H, W); cells: (B, 14, 2) (u, v) -> (B,) float32."""
+        shoulders. channels: (B, 12, H, W); cells: (B, 14, 2) (u, v) on a grid of `stride` px
+        -> (B,) float32."""
         if self.facing is None:
             return torch.ones(channels.shape[0])
         yx = cells[:, list(FACING_JOINTS)].flip(-1) * stride  # (B, 4, 2) (y, x)
