@@ -28,7 +28,8 @@ class Settings(BaseSettings):
     max_queue: int = Field(64, ge=1)
     # A request not answered this long after it arrived gets 504.
     request_timeout_s: float = Field(10.0, gt=0.0)
-    # Intra-op threads of the one model thread (torch.set_num_threads).
+    # torch.set_num_threads of the one model thread: the 2D stage splits each batch across
+    # that many threads, the 3D stage's ops use them within.
     torch_threads: int = Field(1, ge=1)
     max_image_bytes: int = Field(10 * 1024 * 1024, ge=1)
     max_image_pixels: int = Field(40_000_000, ge=1)

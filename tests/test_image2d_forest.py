@@ -96,6 +96,23 @@ def test_traversal_agrees_with_scikit_learn_apply():
     np.testing.assert_allclose(proba, want, atol=1e-3)  # float16 leaves
 
 
+def test_first_trees_is_the_forest_of_those_trees_alone():
+    rng = np.random.default_rng(4)
+    channels = torch.from_numpy(rng.standard_normal((1, 3, 16, 16)).astype(np.float32))
+    exported = _grow(rng, channels, n_trees=3)[2]
+    padded = ft.pad_channels(channels, RADIUS)
+    positions = torch.from_numpy(np.stack([rng.integers(0, 16, 200), rng.integers(0, 16, 200)], 1))
+    head = stack_trees(exported, RADIUS, n_channels=3).first_trees(2)
+    alone = stack_trees(exported[:2], RADIUS, n_channels=3)
+    assert head.n_trees == 2 and len(head.leaf_values) == len(alone.leaf_values)
+    torch.testing.assert_close(
+        traverse(head, padded, positions), traverse(alone, padded, positions)
+    )
+    torch.testing.assert_close(
+        predict_proba(head, padded, positions), predict_proba(alone, padded, positions)
+    )
+
+
 def test_float32_threshold_keeps_float64_comparisons():
     rng = np.random.default_rng(2)
     t64 = rng.standard_normal(10000)

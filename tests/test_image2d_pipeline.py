@@ -3,6 +3,7 @@
 import argparse
 import json
 import re
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -30,6 +31,17 @@ from ds3d.skeleton import FLIP
 needs_data = pytest.mark.skipif(
     not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
 )
+
+
+@contextmanager
+def torch_threads(n: int):
+    """torch.set_num_threads(n) for the block, restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _cli(argv):
@@ -148,7 +160,8 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     est = PoseEstimator2D.load(small_model)
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (240, 320, 3))]
-    res = est.estimate(images, bboxes=[None, (100, 40, 160, 200)])
+    with torch_threads(1):  # one padded batch (more threads would split it)
+        res = est.estimate(images, bboxes=[None, (100, 40, 160, 200)])
     assert res.joints_2d.shape == (2, 14, 2) and torch.isfinite(res.joints_2d).all()
     assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
     assert res.unaries.shape[:2] == (2, 14) and (res.unaries <= 0).all()
@@ -164,16 +177,36 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     assert (res.joints_2d[1, :, 0] > 20).all() and (res.joints_2d[1, :, 0] < 240).all()
 
 
-@needs_data
-def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model):
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threads_split_the_batch_without_changing_any_result(small_model, threads):
     est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(5)
+    shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
+    with torch_threads(1):
+        one = est.estimate(images)
+    with torch_threads(threads):
+        split = est.estimate(images)
+        assert torch.get_num_threads() == threads  # the caller's setting is left alone
+    for name in ("joints_2d", "joint_scores", "score", "unaries", "map_to_image", "scale"):
+        torch.testing.assert_close(getattr(split, name), getattr(one, name), rtol=0, atol=0)
+    assert set(split.timings) == {"features", "traversal", "psm", "total"}
+
+
+@needs_data
+@pytest.mark.parametrize("coarse_trees", [None, 2])
+def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model, coarse_trees):
+    est = PoseEstimator2D.load(small_model)
+    est.params = replace(est.params, coarse_trees=coarse_trees)
     p = est.params
     assert (p.select_stride, p.stride, p.unary_blur) == (6, 3, 2)
     rng = np.random.default_rng(4)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 200, 3))]
     res = est.estimate(images)
     coarse = replace(p, stride=6, unary_blur=1, select_stride=None)  # blur 2 cells of 3 px
-    coarse = PoseEstimator2D(est.layers, est.mixtures, coarse)
+    # The coarse pass reads the first coarse_trees trees of each layer (all with None).
+    layers = [f.first_trees(coarse_trees or f.n_trees) for f in est.layers]
+    coarse = PoseEstimator2D(layers, est.mixtures, coarse)
     for i, image in enumerate(images):
         scores = [coarse.estimate([image], scales=[s]).score.item() for s in est.scales()]
         chosen = est.scales()[int(np.argmax(scores))]

@@ -221,6 +221,8 @@ def cmd_bench(args) -> int:
                 "scales": est.scales(),
                 "stride": est.params.stride,
                 "select_stride": est.params.select_stride,
+                "coarse_trees": est.params.coarse_trees,
+                "step_ms": "summed over the threads (CPU time); total is wall-clock",
             }
         ),
         file=sys.stderr,

@@ -6,8 +6,9 @@ the box around its joints) is `canonical_extent` pixels; the PSM's offsets are l
 scale. At inference an image (or a person box) is first resized to a base scale where a person
 filling it would have that extent, then the pyramid tries `n_scales` scales
 `start * factor**k` around it and keeps, per image, the scale whose PSM score is best. To save
-time, the scale is chosen by a coarse pass (`select_stride`, every 6th pixel) over all scales;
-only the chosen scale is then run at the full `stride`.
+time, the scale is chosen by a coarse pass (`select_stride`, every 6th pixel; optionally with
+only the first `coarse_trees` trees of each layer) over all scales; only the chosen scale is then
+run at the full `stride` with every tree.
 
 Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background from image
 channels. Each later layer (auto-context) splits on the image channels AND on the previous
@@ -27,6 +28,7 @@ import gzip
 import io
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -63,6 +65,9 @@ class EstimatorParams:
     # A coarse pass at this stride picks each image's scale, then only that scale runs at
     # `stride` (None: every scale at `stride`, the best PSM score wins; 1.5-2x slower).
     select_stride: int | None = 6
+    # Trees per layer in the coarse pass (None: all). 8 of 16: 1.3x faster, validation PCK
+    # 39.5 vs 40.2 % (docs/RESULTS.md).
+    coarse_trees: int | None = 8
     observer_labels: bool = False  # observer-centric cascade + PSM, a facing forest decides
 
 
@@ -344,20 +349,48 @@ class PoseEstimator2D:
         With `select_stride`, a coarse pass (that stride) over every scale picks each image's
         scale by its PSM score, and only the chosen scale is run at `stride`; otherwise every
         scale runs at `stride` and the best PSM score wins.
+
+        With torch.get_num_threads() = N > 1, the batch is split into N parts run at once on N
+        threads of one intra-op thread each: the traversal's gathers do not parallelise within
+        an op, but whole images do (2 threads: 1.6-1.9x at batch 16, docs/RESULTS.md). Each
+        image's result does not depend on the batch it is in, so neither does it on N. The
+        step timings are then summed over the threads (CPU seconds); "total" is wall-clock.
         """
         if len(images) == 0:
             raise ValueError("no images")
         if bboxes is not None and len(bboxes) != len(images):
             raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
-        p = self.params
         t_start = now()
-        timings = {"features": 0.0, "traversal": 0.0, "psm": 0.0}
-        crops = _crops(images, bboxes, p)
+        crops = _crops(images, bboxes, self.params)
         scales = list(scales) if scales is not None else self.scales()
+        splits = np.array_split(np.arange(len(crops)), torch.get_num_threads())
+        parts = [torch.from_numpy(rows) for rows in splits if len(rows)]
+        if len(parts) == 1:
+            best = self._estimate_crops(crops, scales)
+        else:
+
+            def run(rows: torch.Tensor) -> Estimate2D:
+                torch.set_num_threads(1)  # this thread's intra-op threads only
+                return self._estimate_crops([crops[i] for i in rows], scales)
+
+            with ThreadPoolExecutor(max_workers=len(parts)) as pool:
+                results = list(pool.map(run, parts))
+            best = _gather_rows(list(zip(parts, results, strict=True)), len(crops))
+            best.timings = {k: sum(r.timings[k] for r in results) for k in results[0].timings}
+        timings = {k: round(v, 6) for k, v in best.timings.items()}
+        best = _person_centric(best)
+        best.timings = {**timings, "total": round(now() - t_start, 6)}
+        return best
+
+    def _estimate_crops(self, crops: list[_Crop], scales: list[float]) -> Estimate2D:
+        """estimate() of crops on the calling thread, before the left/right decision; sets
+        timings of the steps (seconds)."""
+        p = self.params
+        timings = {"features": 0.0, "traversal": 0.0, "psm": 0.0}
         if p.select_stride is None or len(scales) == 1:
             best = None
             for rel in scales:
-                cand = self._one_scale(crops, rel, p, timings)
+                cand = self._one_scale(crops, rel, self.layers, p, timings)
                 best = cand if best is None else _keep_better(best, cand)
         else:
             # The coarse pass blurs its unaries over the same pixels (at least one cell).
@@ -366,26 +399,32 @@ class PoseEstimator2D:
                 stride=p.select_stride,
                 unary_blur=max(1, round(p.unary_blur * p.stride / p.select_stride)),
             )
+            layers = self.layers
+            if p.coarse_trees is not None:
+                layers = [forest.first_trees(p.coarse_trees) for forest in layers]
             score = torch.stack(
-                [self._one_scale(crops, rel, coarse, timings).score for rel in scales]
+                [self._one_scale(crops, rel, layers, coarse, timings).score for rel in scales]
             )
             choice = score.argmax(dim=0)  # (B,) index into scales
             parts = []
             for k in choice.unique().tolist():
                 rows = torch.nonzero(choice == k).view(-1)
-                part = self._one_scale([crops[i] for i in rows], scales[k], p, timings)
+                part = self._one_scale([crops[i] for i in rows], scales[k], self.layers, p, timings)
                 parts.append((rows, part))
             best = _gather_rows(parts, len(crops))
-        best = _person_centric(best)
-        best.timings = {k: round(v, 6) for k, v in timings.items()}
-        best.timings["total"] = round(now() - t_start, 6)
+        best.timings = timings
         return best
 
     def _one_scale(
-        self, crops: list[_Crop], rel: float, p: EstimatorParams, timings: dict[str, float]
+        self,
+        crops: list[_Crop],
+        rel: float,
+        layers: list[Forest],
+        p: EstimatorParams,
+        timings: dict[str, float],
     ) -> Estimate2D:
-        """Cascade + PSM of every crop at `rel` times its base scale, with params p (whose
-        stride and blur may differ from the model's); adds the seconds of each step to
+        """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
+        (whose stride and blur may differ from the model's); adds the seconds of each step to
         timings."""
         t0 = now()
         resized = [resize_image(c.image, c.base * rel) for c in crops]
@@ -395,7 +434,7 @@ class PoseEstimator2D:
         channels = _batch_channels(resized, hmax, wmax)
         valid = valid_cells(sizes, hmax, wmax, p.stride)  # (B, 1, gh, gw)
         t1 = now()
-        probs = cascade_probs(self.layers, channels, p, sizes)[-1]
+        probs = cascade_probs(layers, channels, p, sizes)[-1]
         unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
         unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
         t2 = now()

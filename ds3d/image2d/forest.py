@@ -20,7 +20,7 @@ Export layout (all trees concatenated, N nodes, L leaves; compact dtypes keep th
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from functools import cached_property
 
 import numpy as np
@@ -67,12 +67,29 @@ class Forest:
         second = second_reads(first[0], self.dy2.int(), self.dx2.int(), self.use2, self.n_channels)
         return (*first, *second, self.left.int(), self.threshold.view(torch.int32))
 
+    def first_trees(self, k: int) -> Forest:
+        """The forest of its first k trees (the node and leaf rows of a tree follow those of the
+        trees before it, so this is a prefix of every array)."""
+        if k >= self.n_trees:
+            return self
+        n_nodes = int(self.roots[k])
+        n_leaves = int(self.leaf[:n_nodes].max()) + 1
+        return replace(
+            self,
+            **{f: getattr(self, f)[:n_nodes] for f in _NODE_FIELDS},
+            leaf_values=self.leaf_values[:n_leaves],
+            roots=self.roots[:k],
+        )
+
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> Forest:
         return cls(**{f.name: d[f.name] for f in fields(cls)})
+
+
+_NODE_FIELDS = ("channel", "dy1", "dx1", "dy2", "dx2", "use2", "threshold", "left", "leaf")
 
 
 def float32_threshold(threshold: np.ndarray) -> np.ndarray:
