@@ -168,24 +168,26 @@ def search_window(
 
 def refine(
     estimate: Estimate2D,
-    unaries: torch.Tensor,
+    unary_weight: float,
     neighbours_2d: torch.Tensor,
     weights: torch.Tensor,
     config: PipelineConfig,
 ) -> Refinement:
     """eqt:best_segments_pose for every (image, set): B * S PSM problems.
 
-    unaries: (B, 14, h, w) log-probs as the 2D stage's PSM sees them; neighbours_2d:
-    (B, S, N, 14, 2) px, the projected neighbours of each set; weights: (B, S, N) >= 0, their
-    sample weights in the binaries (eq:binary fit on them with `config.components` mixtures,
-    all B * S at once). The MAP of an image's S problems is searched together, within
-    `config.window_margin` cells of the span of its neighbours (search_window): one window per
-    image rather than the batch's padded grid, which cuts the cost of the max-convolutions
-    several fold on LSP images.
+    unary_weight: the factor on the 2D stage's log-prob unaries (estimate.unaries) against
+    the binaries; neighbours_2d: (B, S, N, 14, 2) px, the projected neighbours of each set;
+    weights: (B, S, N) >= 0, their sample weights in the binaries (eq:binary fit on them with
+    `config.components` mixtures, all B * S at once). The MAP of an image's S problems is
+    searched together, within `config.window_margin` cells of the span of its neighbours
+    (search_window): one window per image rather than the batch's padded grid, which cuts the
+    cost of the max-convolutions several fold on LSP images. The weight applies after the
+    window is cut, so that cells beyond the grid cost as much as the grid's least likely
+    cells (weighting first would make them cheaper, and draw weak joints off the image).
     """
     b, s, n = neighbours_2d.shape[:3]
     cells = image_to_cells(neighbours_2d.reshape(b, s * n, NUM_JOINTS, 2), estimate.map_to_image)
-    windows = [search_window(unaries[i], cells[i], config.window_margin) for i in range(b)]
+    windows = [search_window(estimate.unaries[i], cells[i], config.window_margin) for i in range(b)]
     origin = torch.stack([o for _, o in windows])  # (B, 2)
     local = (cells - origin[:, None, None, :]).reshape(b * s, n, NUM_JOINTS, 2)
     mixtures = fit_pairwise_mixtures(
@@ -195,7 +197,7 @@ def refine(
     for i, (window, _) in enumerate(windows):
         part = slice(i * s, (i + 1) * s)
         res = infer(
-            window[None].expand(s, -1, -1, -1),
+            (unary_weight * window)[None].expand(s, -1, -1, -1),
             PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
             stride=1.0,
         )
@@ -271,7 +273,7 @@ class Pipeline:
         visible = torch.ones(b, NUM_JOINTS, dtype=torch.bool, device=dev)
         # One frame for every iteration: the warm-started projections stay in its coordinates.
         frame = image_frame(x0, visible, None if k is None else k.to(dev))
-        psm_unaries = est.unaries * (self.estimator.params.unary_weight * cfg.unary_weight)
+        unary_weight = self.estimator.params.unary_weight * cfg.unary_weight
         usable = lifter.usable_sets(visible)
         rows = torch.arange(b, device=dev)
 
@@ -290,7 +292,7 @@ class Pipeline:
                 )
                 kept_2d = project(kept, params, frame.unsqueeze(1))
             with torch.no_grad(), _timed(timings, "refinement", dev):
-                ref = refine(est, psm_unaries, kept_2d, weights, cfg)
+                ref = refine(est, unary_weight, kept_2d, weights, cfg)
                 if cfg.selection == "posterior":
                     chosen = torch.where(usable, ref.score, -torch.inf).argmax(-1)
                 else:

@@ -23,6 +23,7 @@ from ds3d.pipeline import (
     cells_to_image,
     image_to_cells,
     neighbour_scores,
+    refine,
     search_window,
 )
 from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
@@ -143,6 +144,27 @@ def test_search_window_reads_cells_and_pads_beyond_the_grid():
     far = torch.tensor([[-500.0, 2.0], [900.0, 3.0]]).repeat(NUM_JOINTS // 2, 1)[None]
     window, origin = search_window(unaries, far, margin=1)
     assert origin.tolist() == [-1, 1] and window.shape == (NUM_JOINTS, 4, 7)  # v 1..4, u -1..5
+
+
+def test_refinement_keeps_weak_joints_on_the_grid():
+    # Every cell of a 10 x 10 grid has p = 0.05; the neighbours put half the joints 3 cells
+    # left of it. Weighted by 4, an in-grid cell costs 4 log 0.05 = -12; a cell beyond the grid
+    # must cost 4 log(LOG_EPS) = -37 (the grid's floor, weighted alike), so the MAP stays on
+    # the grid, one binary step from the neighbours.
+    unaries = torch.full((1, NUM_JOINTS, 10, 10), float(np.log(0.05)))
+    identity = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])  # cell (u, v) = pixel (x, y)
+    one = torch.ones(1)
+    estimate = Estimate2D(
+        torch.zeros(1, NUM_JOINTS, 2), torch.zeros(1, NUM_JOINTS), one, unaries, identity, one, one
+    )
+    pose = torch.stack(
+        [torch.arange(NUM_JOINTS) % 2 * 5.0 - 3.0, torch.arange(NUM_JOINTS) * 0.6], -1
+    )
+    jitter = 0.3 * torch.randn(32, NUM_JOINTS, 2, generator=torch.Generator().manual_seed(0))
+    neighbours = (pose + jitter)[None, None]  # (1, 1, 32, 14, 2)
+    ref = refine(estimate, 4.0, neighbours, torch.ones(1, 1, 32), PipelineConfig())
+    joints = ref.joints_2d[0, 0]
+    assert bool((joints >= 0).all() & (joints <= 9).all()), joints
 
 
 def _batch(estimates: list[Estimate2D]) -> Estimate2D:

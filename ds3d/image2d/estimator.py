@@ -299,6 +299,7 @@ class PoseEstimator2D:
         self.mixtures = mixtures
         self.params = params
         self.facing = facing
+        self._first_trees: dict[int, list[Forest]] = {}  # coarse-pass layers, per tree count
 
     @classmethod
     def load(cls, model_dir: Path | str | None = None) -> PoseEstimator2D:
@@ -399,9 +400,7 @@ class PoseEstimator2D:
                 stride=p.select_stride,
                 unary_blur=max(1, round(p.unary_blur * p.stride / p.select_stride)),
             )
-            layers = self.layers
-            if p.coarse_trees is not None:
-                layers = [forest.first_trees(p.coarse_trees) for forest in layers]
+            layers = self.layers if p.coarse_trees is None else self._coarse_layers(p.coarse_trees)
             score = torch.stack(
                 [self._one_scale(crops, rel, layers, coarse, timings).score for rel in scales]
             )
@@ -414,6 +413,13 @@ class PoseEstimator2D:
             best = _gather_rows(parts, len(crops))
         best.timings = timings
         return best
+
+    def _coarse_layers(self, k: int) -> list[Forest]:
+        """The layers cut to their first k trees, made once per k (a new Forest converts its
+        node reads again, Forest.node_reads)."""
+        if k not in self._first_trees:
+            self._first_trees[k] = [forest.first_trees(k) for forest in self.layers]
+        return self._first_trees[k]
 
     def _one_scale(
         self,
