@@ -113,7 +113,8 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert [f.n_trees for f in est.layers] == [3, 3]
     assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
     assert est.mixtures.n_components == 3
-    assert not est.params.observer_labels and est.facing is None
+    assert not est.params.observer_labels
+    assert est.facing.n_classes == 2 and est.facing.n_channels == 12  # ds3d.image2d.facing
 
 
 @needs_data

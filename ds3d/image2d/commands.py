@@ -35,7 +35,6 @@ SMALL = {
     "min_samples_leaf": 5,
     "psm_iterations": 10,
     "facing_trees": 2,
-    "facing_images_per_tree": 20,
 }
 
 

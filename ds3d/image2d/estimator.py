@@ -15,11 +15,13 @@ channels. Each later layer (auto-context) splits on the image channels AND on th
 layer's joint probability maps, read at offsets, which lets it use where the other joints
 probably are. Unaries are log(box-blurred probabilities of the last layer).
 
-Left and right. With `observer_labels` (off in the bundled model), the cascade and the PSM work
-with observer-centric labels (the arm whose shoulder is on the image's left is "right"; see
-ds3d.image2d.train). A two-class facing forest, read at the PSM's head top, neck and
-shoulders, says whether the person faces the camera; if not, left and right are swapped at the
-end, so results are person-centric like LSP's labels.
+Left and right. The cascade labels the limb on the image's left "right" in nearly every image,
+as if everyone faced the camera. A facing forest on a descriptor aligned to the PSM's pose
+(ds3d.image2d.facing) says whether the person does; if not, left and right are swapped at the
+end, so results are person-centric like LSP's labels. With `observer_labels` (off in the
+bundled model) the cascade and the PSM are trained on observer-centric labels outright (the arm
+whose shoulder is on the image's left is "right"; see ds3d.image2d.train), and the same facing
+forest maps them back.
 """
 
 from __future__ import annotations
@@ -37,14 +39,14 @@ import numpy as np
 import torch
 
 from ds3d.errors import DataFormatError, InvalidImage
+from ds3d.image2d.facing import descriptor
 from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
 from ds3d.image2d.forest import Forest, predict_proba
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import FLIP, HEAD_TOP, L_SHOULDER, NECK, NUM_JOINTS, R_SHOULDER
+from ds3d.skeleton import FLIP, NUM_JOINTS
 
 LOG_EPS = 1e-4  # floor of the probabilities before the log: keeps unaries finite
-FACING_JOINTS = (HEAD_TOP, NECK, R_SHOULDER, L_SHOULDER)  # where the facing forest looks
 
 
 @dataclass
@@ -316,19 +318,14 @@ class PoseEstimator2D:
             raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
         return cls(layers, mixtures, params, facing)
 
-    def _facing(
-        self, channels: torch.Tensor, cells: torch.Tensor, sizes: list[tuple[int, int]], stride: int
-    ) -> torch.Tensor:
-        """P(faces the camera) from the facing forest at the PSM's head top, neck and
-        shoulders. channels: (B, 12, H, W); cells: (B, 14, 2) (u, v) on a grid of `stride` px
-        -> (B,) float32."""
+    def _facing(self, channels: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """P(faces the camera) from the facing forest on the descriptor at the PSM's pose
+        (ds3d.image2d.facing). channels: (B, 12, H, W); joints: (B, 14, 2) (x, y) px on them
+        -> (B,) float32 (1 for a model without a facing forest)."""
         if self.facing is None:
             return torch.ones(channels.shape[0])
-        yx = cells[:, list(FACING_JOINTS)].flip(-1) * stride  # (B, 4, 2) (y, x)
-        limit = torch.tensor(sizes) - 1  # (B, 2) (h - 1, w - 1)
-        yx = torch.minimum(yx.clamp_min(0), limit[:, None, :])
-        probs = predict_proba(self.facing, pad_channels(channels, self.facing.radius), yx)
-        return probs[..., 1].mean(dim=1)
+        padded = pad_channels(descriptor(channels, joints), self.facing.radius)
+        return predict_proba(self.facing, padded, torch.zeros(1, 2, dtype=torch.long))[:, 0, 1]
 
     def scales(self) -> list[float]:
         p = self.params
@@ -402,7 +399,10 @@ class PoseEstimator2D:
             )
             layers = self.layers if p.coarse_trees is None else self._coarse_layers(p.coarse_trees)
             score = torch.stack(
-                [self._one_scale(crops, rel, layers, coarse, timings).score for rel in scales]
+                [
+                    self._one_scale(crops, rel, layers, coarse, timings, facing=False).score
+                    for rel in scales
+                ]
             )
             choice = score.argmax(dim=0)  # (B,) index into scales
             parts = []
@@ -428,10 +428,12 @@ class PoseEstimator2D:
         layers: list[Forest],
         p: EstimatorParams,
         timings: dict[str, float],
+        facing: bool = True,
     ) -> Estimate2D:
         """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
         (whose stride and blur may differ from the model's); adds the seconds of each step to
-        timings."""
+        timings. facing: whether to run the facing forest (the coarse pass only needs the
+        scores; its facing_camera is then 1)."""
         t0 = now()
         resized = [resize_image(c.image, c.base * rel) for c in crops]
         sizes = [r.shape[:2] for r in resized]
@@ -445,7 +447,7 @@ class PoseEstimator2D:
         unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
         t2 = now()
         res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
-        facing = self._facing(channels, res.cells, sizes, p.stride)
+        faces = self._facing(channels, res.joints_2d) if facing else torch.ones(len(crops))
         t3 = now()
         timings["features"] += t1 - t0
         timings["traversal"] += t2 - t1
@@ -470,7 +472,7 @@ class PoseEstimator2D:
             unaries,
             affine,
             fac.mean(1),
-            facing,
+            faces,
         )
 
 

@@ -31,7 +31,6 @@ import torch
 
 from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.image2d.estimator import (
-    FACING_JOINTS,
     EstimatorParams,
     box_mean,
     cascade_probs,
@@ -39,6 +38,7 @@ from ds3d.image2d.estimator import (
     resize_image,
     save_forest,
 )
+from ds3d.image2d.facing import CHAINS, NUM_POINTS, descriptor, descriptor_pool
 from ds3d.image2d.features import (
     NUM_IMAGE_CHANNELS,
     evaluate_pool,
@@ -49,7 +49,7 @@ from ds3d.image2d.features import (
 from ds3d.image2d.forest import Forest, fit_tree, stack_trees
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures
 from ds3d.image_io import read_image
-from ds3d.skeleton import FLIP, L_HIP, L_SHOULDER, NUM_JOINTS, R_HIP, R_SHOULDER
+from ds3d.skeleton import FLIP, L_SHOULDER, NUM_JOINTS, R_SHOULDER
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +69,9 @@ class TrainConfig:
     radius: int = 40  # max offset of a comparison, px at the working scale
     pos_per_joint: int = 8
     pos_radius: float = 5.0  # px: pixels this close to a joint are that joint's positives
-    facing_trees: int = 8
-    facing_images_per_tree: int = 1500
+    facing_trees: int = 64
+    facing_min_samples_leaf: int = 5
+    facing_jitter: float = 0.12  # training poses jittered by this x torso length (like predictions)
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
@@ -119,11 +120,6 @@ def load_training_image(
     return TrainingImage(image, joints, visible)
 
 
-# (right chain, left chain): the arm from the shoulder, the leg from the hip.
-_ARMS = ((8, 7, 6), (9, 10, 11))
-_LEGS = ((2, 1, 0), (3, 4, 5))
-
-
 def faces_camera(joints: np.ndarray) -> bool:
     """Person-centric (14, 2) joints: True when the right shoulder is left of the left one."""
     return bool(joints[R_SHOULDER, 0] < joints[L_SHOULDER, 0])
@@ -133,8 +129,8 @@ def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarra
     """Relabel (14, 2) joints / (14,) visibility so that the arm (leg) whose shoulder (hip) is
     on the image's left is the right one."""
     order = list(range(NUM_JOINTS))
-    for (right, left), (ri, li) in ((_ARMS, (R_SHOULDER, L_SHOULDER)), (_LEGS, (R_HIP, L_HIP))):
-        if joints[ri, 0] > joints[li, 0]:
+    for right, left in CHAINS:
+        if joints[right[0], 0] > joints[left[0], 0]:
             for a, b in zip(right, left, strict=True):
                 order[a], order[b] = b, a
     return joints[order], visible[order]
@@ -236,46 +232,49 @@ def grow_layer(
     return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS + n_ctx)
 
 
-def grow_facing(
-    ann: PoseAnnotations,
-    items: list[tuple[int, bool]],
-    cfg: TrainConfig,
-    params: EstimatorParams,
-    rng: np.random.Generator,
-) -> Forest:
-    """Two-class forest (0 = faces away, 1 = faces the camera) on pixels near the visible head
-    top, neck and shoulders; labels from the person-centric shoulders (faces_camera)."""
-    trees = []
-    for t in range(cfg.facing_trees):
-        t0 = time.perf_counter()
-        pool = sample_pool(rng, cfg.pool_size, cfg.radius, NUM_IMAGE_CHANNELS)
-        chosen = rng.choice(len(items), min(cfg.facing_images_per_tree, len(items)), replace=False)
-        xs, ys = [], []
-        for k in chosen:
-            sample = load_training_image(ann, items[k][0], bool(rng.random() < 0.5), params)
-            keep = np.zeros(NUM_JOINTS, dtype=bool)
-            keep[list(FACING_JOINTS)] = True
-            if not (sample.visible[R_SHOULDER] and sample.visible[L_SHOULDER]):
-                continue  # junk or guessed shoulders give no reliable label
-            positions, labels = sample_pixels(
-                rng, TrainingImage(sample.image, sample.joints, sample.visible & keep), cfg
-            )
-            positions = positions[labels != BACKGROUND]
-            padded = pad_channels(stacked_channels(sample, None, params), cfg.radius)[0]
-            xs.append(evaluate_pool(padded, cfg.radius, torch.from_numpy(positions), pool).numpy())
-            ys.append(np.full(len(positions), int(faces_camera(sample.joints))))
-        tree = fit_tree(
-            np.concatenate(xs),
-            np.concatenate(ys),
-            pool,
-            2,
-            seed=int(rng.integers(2**31)),
-            max_depth=cfg.max_depth,
-            min_samples_leaf=cfg.min_samples_leaf,
+def grow_facing(ann: PoseAnnotations, cfg: TrainConfig, params: EstimatorParams) -> Forest:
+    """The facing forest (ds3d.image2d.facing): 0 = faces away, 1 = faces the camera (by the
+    annotated shoulders, faces_camera). One sample per training image with both shoulders
+    annotated, at the working scale with a random flip: the descriptor at the annotated pose
+    jittered by `facing_jitter` torso lengths, as imprecise as a predicted pose. A random
+    forest: each tree grows on a bootstrap sample. Its generator is its own (seed, 7), so the
+    facing forest does not depend on the cascade's draws."""
+    rng = np.random.default_rng([cfg.seed, 7])
+    pool = descriptor_pool()
+    origin = torch.zeros(1, 2, dtype=torch.long)
+    labelled = np.flatnonzero(ann.visible[:, [R_SHOULDER, L_SHOULDER]].all(1))
+    xs, ys = [], []
+    for i in rng.choice(labelled, len(labelled), replace=False):
+        sample = load_training_image(ann, int(i), bool(rng.random() < 0.5), params)
+        joints = torch.from_numpy(sample.joints)
+        torso = float(((joints[8] + joints[9]) / 2 - (joints[2] + joints[3]) / 2).norm())
+        noise = rng.normal(0, cfg.facing_jitter * torso, joints.shape).astype(np.float32)
+        desc = descriptor(
+            image_channels(torch.from_numpy(sample.image)[None]),
+            joints[None] + torch.from_numpy(noise)[None],
         )
-        trees.append(tree)
-        log.info("facing tree %d/%d: %.1fs", t + 1, cfg.facing_trees, time.perf_counter() - t0)
-    return stack_trees(trees, cfg.radius, NUM_IMAGE_CHANNELS)
+        xs.append(
+            evaluate_pool(pad_channels(desc, NUM_POINTS)[0], NUM_POINTS, origin, pool).numpy()
+        )
+        ys.append(int(faces_camera(sample.joints)))
+    x, y = np.concatenate(xs), np.array(ys)
+    trees = []
+    for _ in range(cfg.facing_trees):
+        rows = rng.integers(0, len(y), len(y))
+        seed = int(rng.integers(2**31))
+        trees.append(
+            fit_tree(
+                x[rows],
+                y[rows],
+                pool,
+                2,
+                seed=seed,
+                max_depth=cfg.max_depth,
+                min_samples_leaf=cfg.facing_min_samples_leaf,
+            )
+        )
+    log.info("facing forest: %d images, %d trees", len(y), len(trees))
+    return stack_trees(trees, NUM_POINTS, NUM_IMAGE_CHANNELS)
 
 
 def cascade_contexts(
@@ -362,11 +361,10 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
     for forest, name in zip(layers, layer_files, strict=True):
         save_forest(forest, out_dir / name)
-    facing_file = "facing.pt.gz" if params.observer_labels else None
-    if facing_file:
-        t1 = time.perf_counter()
-        save_forest(grow_facing(train_ann, items[0], cfg, params, rng), out_dir / facing_file)
-        timings["facing"] = time.perf_counter() - t1
+    facing_file = "facing.pt.gz"
+    t1 = time.perf_counter()
+    save_forest(grow_facing(train_ann, cfg, params), out_dir / facing_file)
+    timings["facing"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
     timings["psm"] = time.perf_counter() - t2
