@@ -1,4 +1,4 @@
-"""Training of the 2D stage: a forest cascade and the PSM's pairwise mixtures.
+"""Training of the 2D stage: a forest cascade, the PSM's pairwise mixtures and a facing forest.
 
 Data: LSP train (im0001-im1000, minus the last `n_val` images, held out for validation) and
 LSPet (10,000). Every image is rescaled so that its person spans `canonical_extent` px
@@ -7,11 +7,12 @@ grows on the first; each later layer grows on its own share, reading the maps of
 before it computed on images they never saw, so that its context features see maps as noisy as
 at test time (stacking without leakage).
 
-Labels can be observer-centric (`EstimatorParams.observer_labels`): in every training
-image the arm whose shoulder is on the image's left is called "right", and likewise the leg by
-its hip, which is what local image evidence can tell. Whether the person faces the camera (then
-person-centric = observer-centric) or away (then left and right swap) is learnt by a separate
-two-class facing forest on pixels at the head, neck and shoulders.
+Whether the person faces the camera (then person-centric = observer-centric labels) or away
+(then left and right swap) is learnt by a separate two-class facing forest on a descriptor
+aligned to the pose (ds3d.image2d.facing, grow_facing). Labels can be observer-centric
+outright (`EstimatorParams.observer_labels`): in every training image the arm whose shoulder is
+on the image's left is called "right", and likewise the leg by its hip, which is what local
+image evidence can tell.
 
 Each tree draws its own images (random horizontal flips), its own pixels (positives near the
 visible joints, background elsewhere) and its own pool of random pixel comparisons, and is
@@ -49,7 +50,7 @@ from ds3d.image2d.features import (
 from ds3d.image2d.forest import Forest, fit_tree, stack_trees
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures
 from ds3d.image_io import read_image
-from ds3d.skeleton import FLIP, L_SHOULDER, NUM_JOINTS, R_SHOULDER
+from ds3d.skeleton import FLIP, L_HIP, L_SHOULDER, NUM_JOINTS, R_HIP, R_SHOULDER
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +248,8 @@ def grow_facing(ann: PoseAnnotations, cfg: TrainConfig, params: EstimatorParams)
     for i in rng.choice(labelled, len(labelled), replace=False):
         sample = load_training_image(ann, int(i), bool(rng.random() < 0.5), params)
         joints = torch.from_numpy(sample.joints)
-        torso = float(((joints[8] + joints[9]) / 2 - (joints[2] + joints[3]) / 2).norm())
+        shoulders = (joints[R_SHOULDER] + joints[L_SHOULDER]) / 2
+        torso = float((shoulders - (joints[R_HIP] + joints[L_HIP]) / 2).norm())
         noise = rng.normal(0, cfg.facing_jitter * torso, joints.shape).astype(np.float32)
         desc = descriptor(
             image_channels(torch.from_numpy(sample.image)[None]),
