@@ -6,7 +6,7 @@ the image's left "right" in nearly every image (docs/RESULTS.md). What tells is 
 box-blurred, on a 6 x 6 grid over the head (a square on the neck -> head-top axis, 1.2 half
 head lengths from its centre) and a 4 x 4 grid spanning the shoulders and hips: 52 points.
 
-The pose it is aligned to is made observer-centric first (ds3d.image2d.train.observer_centric):
+The pose it is aligned to is made observer-centric first (observer_centric):
 the arm whose shoulder is on the image's left is "right", as the cascade's answers effectively
 are. So the descriptor never sees the left/right labels it has to judge.
 
@@ -31,17 +31,21 @@ NUM_POINTS = HEAD_GRID**2 + TORSO_GRID**2
 CHAINS = (((8, 7, 6), (9, 10, 11)), ((2, 1, 0), (3, 4, 5)))
 
 
-def observer_centric(joints: torch.Tensor) -> torch.Tensor:
-    """(B, 14, 2) poses (x, y) -> the same with each arm (leg) pair relabelled so that the one
-    whose shoulder (hip) has the smaller x is the right one (batched
-    ds3d.image2d.train.observer_centric)."""
-    out = joints.clone()
+def observer_order(joints: torch.Tensor) -> torch.Tensor:
+    """(B, 14, 2) poses (x, y) -> (B, 14) long: the joint order that relabels each arm (leg)
+    pair so that the one whose shoulder (hip) has the smaller x is the right one."""
+    order = torch.arange(joints.shape[-2]).repeat(len(joints), 1)
     for right, left in CHAINS:
         swap = joints[:, right[0], 0] > joints[:, left[0], 0]  # (B,)
         for r, k in zip(right, left, strict=True):
-            out[:, r] = torch.where(swap[:, None], joints[:, k], joints[:, r])
-            out[:, k] = torch.where(swap[:, None], joints[:, r], joints[:, k])
-    return out
+            order[swap, r], order[swap, k] = k, r
+    return order
+
+
+def observer_centric(joints: torch.Tensor) -> torch.Tensor:
+    """(B, 14, 2) poses -> the same relabelled by observer_order."""
+    order = observer_order(joints)
+    return torch.gather(joints, 1, order[..., None].expand_as(joints))
 
 
 def sample_points(joints: torch.Tensor) -> torch.Tensor:

@@ -39,7 +39,7 @@ from ds3d.image2d.estimator import (
     resize_image,
     save_forest,
 )
-from ds3d.image2d.facing import CHAINS, NUM_POINTS, descriptor, descriptor_pool
+from ds3d.image2d.facing import NUM_POINTS, descriptor, descriptor_pool, observer_order
 from ds3d.image2d.features import (
     NUM_IMAGE_CHANNELS,
     evaluate_pool,
@@ -129,11 +129,7 @@ def faces_camera(joints: np.ndarray) -> bool:
 def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Relabel (14, 2) joints / (14,) visibility so that the arm (leg) whose shoulder (hip) is
     on the image's left is the right one."""
-    order = list(range(NUM_JOINTS))
-    for right, left in CHAINS:
-        if joints[right[0], 0] > joints[left[0], 0]:
-            for a, b in zip(right, left, strict=True):
-                order[a], order[b] = b, a
+    order = observer_order(torch.from_numpy(joints)[None])[0].numpy()
     return joints[order], visible[order]
 
 
