@@ -5,6 +5,7 @@ import json
 import re
 from contextlib import contextmanager
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,13 +14,14 @@ import torch.nn.functional as F
 
 from ds3d.cli import field_overrides
 from ds3d.errors import InvalidImage
-from ds3d.image2d import commands
+from ds3d.image2d import commands, estimator
 from ds3d.image2d.estimator import (
     LOG_EPS,
     Estimate2D,
     EstimatorParams,
     PoseEstimator2D,
     _person_centric,
+    _traversal_groups,
     context_channels,
     valid_cells,
 )
@@ -192,6 +194,45 @@ def test_threads_split_the_batch_without_changing_any_result(small_model, thread
     for name in ("joints_2d", "joint_scores", "score", "unaries", "map_to_image", "scale"):
         torch.testing.assert_close(getattr(split, name), getattr(one, name), rtol=0, atol=0)
     assert set(split.timings) == {"features", "traversal", "psm", "total"}
+
+
+def test_traversal_groups_partition_the_batch_by_shape_within_the_budget():
+    layer = SimpleNamespace(radius=40, n_channels=26)  # a context layer's padding and channels
+    tall, wide = (135, 76), (76, 135)
+    sizes = [tall, wide, tall, wide, tall, (135, 135)]
+    groups = _traversal_groups(sizes, layer)
+    assert sorted(i for g in groups for i in g) == list(range(len(sizes)))
+
+    def nbytes(group):
+        h = max(sizes[i][0] for i in group) + 80
+        w = max(sizes[i][1] for i in group) + 80
+        return len(group) * 4 * 27 * h * w
+
+    assert all(len(g) == 1 or nbytes(g) <= estimator.GROUP_BYTES for g in groups)
+    # by aspect ratio (height / width): the wide ones and the square, then the tall ones
+    # (3.6 MB each padded; a fourth 215 x 215 px image would pass the 16 MB)
+    assert groups == [[1, 3, 5], [0, 2, 4]]
+    assert _traversal_groups([tall] * 3, SimpleNamespace(radius=400, n_channels=26)) == [
+        [0],
+        [1],
+        [2],
+    ]  # one image over the budget: a group of its own
+
+
+def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(6)
+    shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
+    results = []
+    with torch_threads(1):
+        for budget in (0, 2**20, 2**40):  # one image per group, a few, all in one
+            monkeypatch.setattr(estimator, "GROUP_BYTES", budget)
+            results.append(est.estimate(images))
+    for res in results[:2]:
+        for name in ("joints_2d", "joint_scores", "score", "unaries", "facing_camera"):
+            expected = getattr(results[2], name)
+            torch.testing.assert_close(getattr(res, name), expected, rtol=0, atol=0)
 
 
 @needs_data
