@@ -435,7 +435,8 @@ class PoseEstimator2D:
         """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
         (whose stride and blur may differ from the model's); adds the seconds of each step to
         timings. facing: whether to run the facing forest (the coarse pass only needs the
-        scores; its facing_camera is then 1)."""
+        scores; its facing_camera is then 1). The cascade runs on groups of images of similar
+        shape (_traversal_groups), the PSM on the whole batch at once."""
         t0 = now()
         resized = [resize_image(c.image, c.base * rel) for c in crops]
         sizes = [r.shape[:2] for r in resized]
