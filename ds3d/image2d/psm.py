@@ -41,16 +41,18 @@ _LIMB_PARENT = torch.tensor([j for _, j in LIMBS])
 _LIMB_OF_CHILD = {i: limb for limb, (i, _) in enumerate(LIMBS)}
 
 
-def _top_down_order() -> tuple[int, ...]:
-    """Non-root joints, every parent before its children (breadth first from the root)."""
-    order, frontier = [], [ROOT]
+def _tree_levels() -> tuple[tuple[int, ...], ...]:
+    """Non-root joints by depth below the root (breadth first): level 0 = the root's children.
+    The joints of one level are independent given the levels above, so each level's messages
+    (and back-tracking steps) run as one batched call."""
+    levels, frontier = [], [ROOT]
     while frontier:
         frontier = [i for p in frontier for i, q in enumerate(PARENT) if q == p]
-        order += frontier
-    return tuple(order)
+        levels.append(tuple(frontier))
+    return tuple(level for level in levels if level)
 
 
-TOP_DOWN = _top_down_order()
+LEVELS = _tree_levels()
 
 
 @dataclass(frozen=True)
@@ -301,7 +303,7 @@ def infer(
         raise ValueError(f"unaries must be (B, {NUM_JOINTS}, H, W), got {tuple(unaries.shape)}")
     if bool(torch.isnan(unaries).any()):
         raise ValueError("unaries contain NaN")
-    b, _, _, width = unaries.shape
+    b, _, height, width = unaries.shape
     if mixtures.batch_size not in (1, b):
         raise ValueError(f"mixtures have batch {mixtures.batch_size}, unaries {b}")
     dtype = unaries.dtype if unaries.is_floating_point() else torch.float32
@@ -316,23 +318,31 @@ def infer(
         log_gamma = log_gamma.expand(mean.shape[0], -1, -1)
 
     beliefs = unaries.to(dtype).clone()  # unary + messages from the children, per joint
-    for child in reversed(TOP_DOWN):
-        limb = _LIMB_OF_CHILD[child]
-        beliefs[:, PARENT[child]] += max_convolve(
-            beliefs[:, child], mean[:, limb], var[:, limb], log_gamma[:, limb], chunk_elements
-        )
+
+    def per_map(t: Tensor, limbs: list[int]) -> Tensor:
+        """(1|B, 13, ...) mixture parameters -> (B * len(limbs), ...) for a level's maps."""
+        t = t[:, limbs]
+        return t.expand(b, *t.shape[1:]).reshape(b * len(limbs), *t.shape[2:])
+
+    def maps(level: tuple[int, ...]) -> Tensor:
+        return beliefs[:, list(level)].reshape(b * len(level), height, width)
+
+    for level in reversed(LEVELS):
+        limbs = [_LIMB_OF_CHILD[child] for child in level]
+        mixture = (per_map(mean, limbs), per_map(var, limbs), per_map(log_gamma, limbs))
+        messages = max_convolve(maps(level), *mixture, chunk_elements).view(b, len(level), -1)
+        # In reverse order, as a loop over the children one at a time adds them: the same sums.
+        for k in reversed(range(len(level))):
+            beliefs[:, PARENT[level[k]]] += messages[:, k].view(b, height, width)
     score, flat = beliefs[:, ROOT].reshape(b, -1).max(dim=1)
     cells = torch.zeros(b, NUM_JOINTS, 2, dtype=torch.long, device=unaries.device)
     cells[:, ROOT, 0], cells[:, ROOT, 1] = flat % width, flat // width
-    for child in TOP_DOWN:
-        limb = _LIMB_OF_CHILD[child]
-        cells[:, child], _ = best_child(
-            beliefs[:, child],
-            cells[:, PARENT[child]],
-            mean[:, limb],
-            var[:, limb],
-            log_gamma[:, limb],
-        )
+    for level in LEVELS:
+        limbs = [_LIMB_OF_CHILD[child] for child in level]
+        parents = cells[:, [PARENT[child] for child in level]].reshape(-1, 2)
+        mixture = (per_map(mean, limbs), per_map(var, limbs), per_map(log_gamma, limbs))
+        best, _ = best_child(maps(level), parents, *mixture)
+        cells[:, list(level)] = best.view(b, len(level), 2)
     joint_scores = (
         unaries.to(dtype).flatten(2).gather(2, (cells[..., 1] * width + cells[..., 0])[..., None])
     )
