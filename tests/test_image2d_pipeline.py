@@ -226,7 +226,8 @@ def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
     results = []
     with torch_threads(1):
-        for budget in (0, 2**20, 2**40):  # one image per group, a few, all in one
+        # one image per group; groups of 2-3 (4-6 MB per padded image here); all in one
+        for budget in (0, 10 * 2**20, 2**40):
             monkeypatch.setattr(estimator, "GROUP_BYTES", budget)
             results.append(est.estimate(images))
     for res in results[:2]:
