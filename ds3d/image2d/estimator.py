@@ -444,22 +444,11 @@ class PoseEstimator2D:
         resized = [resize_image(c.image, c.base * rel) for c in crops]
         sizes = [r.shape[:2] for r in resized]
         timings["features"] += now() - t0
-        parts = []  # (rows, their channels, their unaries) per group
-        for rows in _traversal_groups(sizes, layers[-1]):
-            t1 = now()
-            group = [sizes[i] for i in rows]
-            hmax = max(h for h, _ in group)
-            wmax = max(w for _, w in group)
-            channels = _batch_channels([resized[i] for i in rows], hmax, wmax)
-            t2 = now()
-            probs = cascade_probs(layers, channels, p, group)[-1]
-            unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
-            valid = valid_cells(group, hmax, wmax, p.stride)  # (b, 1, gh, gw)
-            unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
-            parts.append((torch.tensor(rows), channels, unaries))
-            timings["features"] += t2 - t1
-            timings["traversal"] += now() - t2
-        t3 = now()
+        parts = [
+            _group_unaries(resized, rows, layers, p, timings)
+            for rows in _traversal_groups(sizes, layers[-1])
+        ]
+        t1 = now()
         # Back to the batch's order, padded to one grid (log(LOG_EPS) outside each image).
         gh = max(u.shape[2] for _, _, u in parts)
         gw = max(u.shape[3] for _, _, u in parts)
@@ -471,7 +460,7 @@ class PoseEstimator2D:
         if facing:
             for rows, channels, _ in parts:
                 faces[rows] = self._facing(channels, res.joints_2d[rows])
-        timings["psm"] += now() - t3
+        timings["psm"] += now() - t1
         fac = torch.tensor(
             [
                 [r.shape[1] / c.image.shape[1], r.shape[0] / c.image.shape[0]]
@@ -494,6 +483,34 @@ class PoseEstimator2D:
             fac.mean(1),
             faces,
         )
+
+
+def _group_unaries(
+    images: list[np.ndarray],
+    rows: list[int],
+    layers: list[Forest],
+    p: EstimatorParams,
+    timings: dict[str, float],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The cascade's unaries of the images[rows] (H_i, W_i, 3) uint8, zero-padded into one batch.
+
+    Returns (rows (b,) long, channels (b, 12, H, W) float32, unaries (b, 14, gh, gw) float32
+    log-probabilities on the grid of grid_positions(H, W, p.stride), log(LOG_EPS) outside each
+    image), H x W the group's largest height and width; adds the seconds of the features and of
+    the traversal to timings."""
+    t0 = now()
+    sizes = [images[i].shape[:2] for i in rows]
+    hmax = max(h for h, _ in sizes)
+    wmax = max(w for _, w in sizes)
+    channels = _batch_channels([images[i] for i in rows], hmax, wmax)
+    t1 = now()
+    probs = cascade_probs(layers, channels, p, sizes)[-1]
+    unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
+    valid = valid_cells(sizes, hmax, wmax, p.stride)  # (b, 1, gh, gw)
+    unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
+    timings["features"] += t1 - t0
+    timings["traversal"] += now() - t1
+    return torch.tensor(rows), channels, unaries
 
 
 # Bytes of a traversal group's padded channel stack (pad_channels). Larger buffers are mmapped
