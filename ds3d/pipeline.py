@@ -56,7 +56,7 @@ class PipelineConfig:
     model's training; docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
     unary_weight 1 keeps the refinement's unaries at 4x the binaries, as tuned, since the 2D
     stage's own weight rose from 2 to 4 (0.5 / 1 / 1.5 / 2 on the 300 held-out images: within
-    0.7 point and 0.1 px of one another).
+    0.7 point and 0.11 px of one another).
     """
 
     iterations: int = 2

@@ -319,29 +319,28 @@ def infer(
 
     beliefs = unaries.to(dtype).clone()  # unary + messages from the children, per joint
 
-    def per_map(t: Tensor, limbs: list[int]) -> Tensor:
-        """(1|B, 13, ...) mixture parameters -> (B * len(limbs), ...) for a level's maps."""
-        t = t[:, limbs]
-        return t.expand(b, *t.shape[1:]).reshape(b * len(limbs), *t.shape[2:])
+    def per_map(t: Tensor, level: tuple[int, ...]) -> Tensor:
+        """(1|B, 13, ...) mixture parameters -> (B * len(level), ...) for a level's maps."""
+        t = t[:, [_LIMB_OF_CHILD[child] for child in level]]
+        return t.expand(b, *t.shape[1:]).reshape(b * len(level), *t.shape[2:])
 
     def maps(level: tuple[int, ...]) -> Tensor:
         return beliefs[:, list(level)].reshape(b * len(level), height, width)
 
+    # Each level's limb mixtures, used by the upward pass and again by the back-tracking.
+    mixture = {level: tuple(per_map(t, level) for t in (mean, var, log_gamma)) for level in LEVELS}
     for level in reversed(LEVELS):
-        limbs = [_LIMB_OF_CHILD[child] for child in level]
-        mixture = (per_map(mean, limbs), per_map(var, limbs), per_map(log_gamma, limbs))
-        messages = max_convolve(maps(level), *mixture, chunk_elements).view(b, len(level), -1)
+        messages = max_convolve(maps(level), *mixture[level], chunk_elements)
+        messages = messages.view(b, len(level), height, width)
         # In reverse order, as a loop over the children one at a time adds them: the same sums.
         for k in reversed(range(len(level))):
-            beliefs[:, PARENT[level[k]]] += messages[:, k].view(b, height, width)
+            beliefs[:, PARENT[level[k]]] += messages[:, k]
     score, flat = beliefs[:, ROOT].reshape(b, -1).max(dim=1)
     cells = torch.zeros(b, NUM_JOINTS, 2, dtype=torch.long, device=unaries.device)
     cells[:, ROOT, 0], cells[:, ROOT, 1] = flat % width, flat // width
     for level in LEVELS:
-        limbs = [_LIMB_OF_CHILD[child] for child in level]
         parents = cells[:, [PARENT[child] for child in level]].reshape(-1, 2)
-        mixture = (per_map(mean, limbs), per_map(var, limbs), per_map(log_gamma, limbs))
-        best, _ = best_child(maps(level), parents, *mixture)
+        best, _ = best_child(maps(level), parents, *mixture[level])
         cells[:, list(level)] = best.view(b, len(level), 2)
     joint_scores = (
         unaries.to(dtype).flatten(2).gather(2, (cells[..., 1] * width + cells[..., 0])[..., None])
