@@ -34,7 +34,7 @@ SMALL = {
     "max_depth": 10,
     "min_samples_leaf": 5,
     "psm_iterations": 10,
-    "facing_trees": 2,
+    "facing_epochs": 1,
 }
 
 
@@ -54,7 +54,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument(
         "--observer-labels",
         action="store_true",
-        help="observer-centric cascade + facing forest (measured no better; see docs/RESULTS.md)",
+        help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
     )
     p.set_defaults(func=cmd_train)
 

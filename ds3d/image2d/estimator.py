@@ -16,12 +16,12 @@ layer's joint probability maps, read at offsets, which lets it use where the oth
 probably are. Unaries are log(box-blurred probabilities of the last layer).
 
 Left and right. The cascade labels the limb on the image's left "right" in nearly every image,
-as if everyone faced the camera. A facing forest on a descriptor aligned to the PSM's pose
+as if everyone faced the camera. A small CNN on the image around the PSM's torso
 (ds3d.image2d.facing) says whether the person does; if not, left and right are swapped at the
 end, so results are person-centric like LSP's labels. With `observer_labels` (off in the
 bundled model) the cascade and the PSM are trained on observer-centric labels outright (the arm
 whose shoulder is on the image's left is "right"; see ds3d.image2d.train), and the same facing
-forest maps them back.
+model maps them back.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from ds3d.errors import DataFormatError, InvalidImage
-from ds3d.image2d.facing import descriptor
+from ds3d.image2d.facing import FacingNet, faces_camera_probability
 from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
 from ds3d.image2d.forest import Forest, predict_proba
 from ds3d.image2d.psm import PairwiseMixtures, infer
@@ -187,7 +187,7 @@ class Estimate2D:
     map_to_image: (B, 2, 3) float32 affine map from unary cell (u = column, v = row, 1) to image
         pixels (x, y): image_xy = map_to_image @ (u, v, 1).
     scale: (B,) float32, the working scale chosen (working px per image px, mean of x and y).
-    facing_camera: (B,) float32, the facing forest's probability that the person faces the
+    facing_camera: (B,) float32, the facing model's probability that the person faces the
         camera (1 for models without one); below 0.5, left and right were swapped.
     timings: seconds per step (features, traversal, psm, total).
     """
@@ -240,6 +240,12 @@ def load_forest(path: Path) -> Forest:
         raise DataFormatError(f"cannot load forest {path}: {exc}") from exc
 
 
+def load_facing(path: Path) -> FacingNet:
+    net = FacingNet()
+    net.load_state_dict(torch.load(path, weights_only=True))
+    return net.eval()
+
+
 def read_manifest(model_dir: Path) -> dict:
     path = Path(model_dir) / "manifest.json"
     if not path.is_file():
@@ -290,7 +296,8 @@ class PoseEstimator2D:
     """Image -> 2D pose with the trained cascade and PSM of a model directory.
 
     Load with PoseEstimator2D.load(model_dir) (default: models/image2d); the directory holds
-    manifest.json (params, layer files), forest1.pt.gz, forest2.pt.gz, ..., psm.pt.
+    manifest.json (params, layer files), forest1.pt.gz, forest2.pt.gz, ..., psm.pt and the
+    facing model facing.pt (ds3d.image2d.facing).
     """
 
     def __init__(
@@ -298,10 +305,10 @@ class PoseEstimator2D:
         layers: list[Forest],
         mixtures: PairwiseMixtures,
         params: EstimatorParams,
-        facing: Forest | None = None,
+        facing: FacingNet | None = None,
     ):
         if params.observer_labels and facing is None and layers:
-            raise DataFormatError("observer-centric labels need a facing forest")
+            raise DataFormatError("observer-centric labels need a facing model")
         self.layers = layers
         self.mixtures = mixtures
         self.params = params
@@ -318,19 +325,20 @@ class PoseEstimator2D:
             state = torch.load(model_dir / manifest["psm"], weights_only=True)
             mixtures = PairwiseMixtures.from_state_dict(state)
             facing = manifest.get("facing")
-            facing = load_forest(model_dir / facing) if facing else None
+            facing = load_facing(model_dir / facing) if facing else None
         except (KeyError, TypeError, OSError, RuntimeError) as exc:
             raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
         return cls(layers, mixtures, params, facing)
 
-    def _facing(self, channels: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
-        """P(faces the camera) from the facing forest on the descriptor at the PSM's pose
-        (ds3d.image2d.facing). channels: (B, 12, H, W); joints: (B, 14, 2) (x, y) px on them
-        -> (B,) float32 (1 for a model without a facing forest)."""
+    def _facing(
+        self, channels: torch.Tensor, joints: torch.Tensor, sizes: list[tuple[int, int]]
+    ) -> torch.Tensor:
+        """P(faces the camera) from the facing model around the PSM's pose
+        (ds3d.image2d.facing). channels: (B, 12, H, W), zero-padded; joints: (B, 14, 2) (x, y)
+        px on them; sizes: B (h, w) -> (B,) float32 (1 for a model without a facing model)."""
         if self.facing is None:
             return torch.ones(channels.shape[0])
-        padded = pad_channels(descriptor(channels, joints), self.facing.radius)
-        return predict_proba(self.facing, padded, torch.zeros(1, 2, dtype=torch.long))[:, 0, 1]
+        return faces_camera_probability(self.facing, channels[:, :3], joints, sizes)
 
     def scales(self) -> list[float]:
         p = self.params
@@ -437,7 +445,7 @@ class PoseEstimator2D:
     ) -> Estimate2D:
         """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
         (whose stride and blur may differ from the model's); adds the seconds of each step to
-        timings. facing: whether to run the facing forest (the coarse pass only needs the
+        timings. facing: whether to run the facing model (the coarse pass only needs the
         scores; its facing_camera is then 1). The cascade runs on groups of images of similar
         shape (_traversal_groups), the PSM on the whole batch at once."""
         t0 = now()
@@ -459,7 +467,9 @@ class PoseEstimator2D:
         faces = torch.ones(len(crops))
         if facing:
             for rows, channels, _ in parts:
-                faces[rows] = self._facing(channels, res.joints_2d[rows])
+                faces[rows] = self._facing(
+                    channels, res.joints_2d[rows], [sizes[i] for i in rows.tolist()]
+                )
         timings["psm"] += now() - t1
         fac = torch.tensor(
             [
