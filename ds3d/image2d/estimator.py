@@ -241,6 +241,7 @@ def load_forest(path: Path) -> Forest:
 
 
 def load_facing(path: Path) -> FacingNet:
+    """The facing CNN's saved state dict (ds3d.image2d.facing) -> the network, in eval mode."""
     net = FacingNet()
     net.load_state_dict(torch.load(path, weights_only=True))
     return net.eval()
