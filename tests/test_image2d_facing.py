@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from ds3d.image2d import facing
-from ds3d.image2d.train import FACING_MARGIN, TrainConfig, observer_centric, train_facing
+from ds3d.image2d.train import FACING_MARGIN, TrainConfig, train_facing
 from ds3d.skeleton import FLIP, NUM_JOINTS
 
 
@@ -18,12 +18,6 @@ def _ramps(h: int, w: int) -> torch.Tensor:
     """(1, 3, h, w): channel 0 = x, channel 1 = y, channel 2 = 1."""
     yy, xx = torch.meshgrid(torch.arange(h).float(), torch.arange(w).float(), indexing="ij")
     return torch.stack([xx, yy, torch.ones(h, w)])[None]
-
-
-def test_observer_centric_matches_the_training_relabelling():
-    poses = _poses(50, 0).float()
-    want = np.stack([observer_centric(p, np.ones(NUM_JOINTS, bool))[0] for p in poses.numpy()])
-    np.testing.assert_array_equal(facing.observer_centric(poses).numpy(), want)
 
 
 def test_the_window_centre_ignores_left_and_right_labels():

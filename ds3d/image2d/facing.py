@@ -1,8 +1,8 @@
 """Does the person face the camera? A small CNN on the image around the torso.
 
 The cascade cannot tell left from right when a person turns their back: it labels the limb on
-the image's left "right" in nearly every image (docs/RESULTS.md). What tells is the head (a
-face or the back of a head), the torso and the feet, seen together. The facing model reads a
+the image's left "right" in nearly every image (docs/RESULTS.md). What tells is mostly the head (a
+face or the back of a head) and the torso, seen together. The facing model reads a
 CROP x CROP window of the Lab channels at the working scale (a person spans about 100 px, so
 the window holds the head, the torso and the thighs), centred a quarter of the way from the
 neck to the hips' midpoint: a centre that does not depend on the left/right labels it has to
@@ -22,7 +22,8 @@ from torch import nn
 from ds3d.skeleton import L_HIP, NECK, R_HIP
 
 CROP = 64  # px at the working scale
-# (right chain, left chain) of the arms from the shoulder and of the legs from the hip.
+# (right chain, left chain) of the arms from the shoulder and of the legs from the hip, for the
+# observer-centric relabelling of EstimatorParams.observer_labels (ds3d.image2d.train).
 CHAINS = (((8, 7, 6), (9, 10, 11)), ((2, 1, 0), (3, 4, 5)))
 
 
@@ -37,15 +38,9 @@ def observer_order(joints: torch.Tensor) -> torch.Tensor:
     return order
 
 
-def observer_centric(joints: torch.Tensor) -> torch.Tensor:
-    """(B, 14, 2) poses -> the same relabelled by observer_order."""
-    order = observer_order(joints)
-    return torch.gather(joints, 1, order[..., None].expand_as(joints))
-
-
 class FacingNet(nn.Module):
     """(B, 3, CROP, CROP) Lab / 100 -> (B,) logit of "faces the camera". Four 3 x 3 conv
-    blocks with batch norm, three 2 x 2 max pools, global average pooling: 115k parameters,
+    blocks with batch norm, three 2 x 2 max pools, global average pooling: 113k parameters,
     about 25 MFLOPs per crop."""
 
     def __init__(self):
