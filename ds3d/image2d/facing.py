@@ -41,7 +41,7 @@ def observer_order(joints: torch.Tensor) -> torch.Tensor:
 class FacingNet(nn.Module):
     """(B, 3, CROP, CROP) Lab / 100 -> (B,) logit of "faces the camera". Four 3 x 3 conv
     blocks with batch norm, three 2 x 2 max pools, global average pooling: 113k parameters,
-    about 25 MFLOPs per crop."""
+    about 25 M multiply-adds per window."""
 
     def __init__(self):
         super().__init__()
