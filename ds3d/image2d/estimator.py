@@ -73,7 +73,7 @@ class EstimatorParams:
     # Trees per layer in the coarse pass (None: all). 8 of 16: 1.3x faster, validation PCK
     # 39.5 vs 40.2 % (docs/RESULTS.md).
     coarse_trees: int | None = 8
-    observer_labels: bool = False  # observer-centric cascade + PSM, a facing forest decides
+    observer_labels: bool = False  # observer-centric cascade + PSM, the facing model decides
 
 
 def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
