@@ -83,6 +83,9 @@ class PipelineResult:
     joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
         root at the hip midpoint.
     confidence: (B, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
+    facing_camera: (B,) float32 in [0, 1], the 2D stage's probability that the person faces the
+        camera; below 0.5 its left and right were swapped (ds3d.image2d.facing), so a value
+        near 0.5 says the left/right labels are a guess.
     joint_set: B names, the chosen set s^.
     psm_energy: (B, T) float32, the negative MAP log-posterior of x^ after each iteration
         (non-increasing in t).
@@ -95,6 +98,7 @@ class PipelineResult:
     joints_2d_iterations: torch.Tensor
     joints_3d: torch.Tensor
     confidence: torch.Tensor
+    facing_camera: torch.Tensor
     joint_set: list[str]
     psm_energy: torch.Tensor
     iterations: int
@@ -107,6 +111,7 @@ class PipelineResult:
             "joints_2d_initial": self.joints_2d_initial[i].tolist(),
             "joints_3d": self.joints_3d[i].tolist(),
             "confidence": self.confidence[i].tolist(),
+            "facing_camera": float(self.facing_camera[i]),
             "joint_set": self.joint_set[i],
             "iterations": self.iterations,
             "psm_energy": self.psm_energy[i].tolist(),
@@ -332,6 +337,7 @@ class Pipeline:
             joints_2d_iterations=torch.stack(history, 1).cpu(),
             joints_3d=pose.detach().cpu(),
             confidence=probability.clamp(0.0, 1.0).cpu(),
+            facing_camera=estimate.facing_camera.cpu(),
             joint_set=[lifter.config.joint_sets[i] for i in best.joint_set.tolist()],
             psm_energy=torch.stack(energies, 1).cpu(),
             iterations=cfg.iterations,

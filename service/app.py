@@ -292,6 +292,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
             joints_2d=out.joints_2d.tolist(),
             joints_3d=out.joints_3d.tolist(),
             confidence=out.confidence.tolist(),
+            facing_camera=out.facing_camera,
             joint_set=out.joint_set,
             model=rt.engine.model_id,
             timings_ms=_stage_times([out], time.perf_counter() - t0),

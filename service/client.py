@@ -58,6 +58,7 @@ class PoseResult:
     joints_2d: np.ndarray  # (14, 2) float32, pixels of the image sent
     joints_3d: np.ndarray  # (14, 3) float32, millimetres
     confidence: np.ndarray  # (14,) float32 in [0, 1]
+    facing_camera: float  # P(faces the camera); below 0.5 left and right were swapped
     joint_set: str
     joint_names: list[str]
     model: str
@@ -192,6 +193,7 @@ class _Protocol:
             joints_2d=np.asarray(body["joints_2d"], dtype=np.float32),
             joints_3d=np.asarray(body["joints_3d"], dtype=np.float32),
             confidence=np.asarray(body["confidence"], dtype=np.float32),
+            facing_camera=float(body["facing_camera"]),
             joint_set=body["joint_set"],
             joint_names=list(body["joint_names"]),
             model=body["model"],

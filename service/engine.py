@@ -58,6 +58,7 @@ class PoseOutput:
     joints_2d: np.ndarray  # (14, 2) float32, pixels
     joints_3d: np.ndarray  # (14, 3) float32, mm
     confidence: np.ndarray  # (14,) float32 in [0, 1]
+    facing_camera: float  # P(faces the camera); below 0.5 left and right were swapped
     joint_set: str
     batch: BatchInfo
 
@@ -142,6 +143,7 @@ class Engine:
             )
             info = self._batch_info(len(idx), res.timings_ms)
             j2, j3, conf = _numpy(res.joints_2d), _numpy(res.joints_3d), _numpy(res.confidence)
+            facing = _numpy(res.facing_camera)
             for j, i in enumerate(idx):
-                out[i] = PoseOutput(j2[j], j3[j], conf[j], res.joint_set[j], info)
+                out[i] = PoseOutput(j2[j], j3[j], conf[j], float(facing[j]), res.joint_set[j], info)
         return out  # type: ignore[return-value]

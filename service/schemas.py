@@ -58,6 +58,10 @@ class PoseResponse(BaseModel):
     joints_2d: list[Point2] = Field(description="14 joints as [x, y] pixels of the input image")
     joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
     confidence: list[float] = Field(description="per-joint confidence in [0, 1]")
+    facing_camera: float = Field(
+        description="probability that the person faces the camera; left and right are the"
+        " person's own, and below 0.5 they were swapped: near 0.5 they are a guess"
+    )
     joint_set: str
     model: str
     timings_ms: dict[str, float]

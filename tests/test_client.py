@@ -135,6 +135,7 @@ def test_estimate_sends_a_numpy_image_as_png_with_bbox():
                 "joints_2d": [[1.0, 2.0]] * 14,
                 "joints_3d": [[1.0, 2.0, 3.0]] * 14,
                 "confidence": [0.5] * 14,
+                "facing_camera": 0.25,
                 "joint_set": "up",
                 "model": "m",
                 "timings_ms": {},
@@ -147,6 +148,7 @@ def test_estimate_sends_a_numpy_image_as_png_with_bbox():
     assert seen["ctype"].startswith("multipart/form-data")
     assert b"\x89PNG" in seen["body"] and b"[1.0, 2.0, 3.0, 4.0]" in seen["body"]
     assert res.joints_2d.shape == (14, 2) and res.confidence.shape == (14,)
+    assert res.facing_camera == 0.25
     assert res.joint_set == "up"
 
 

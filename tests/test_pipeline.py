@@ -57,6 +57,7 @@ def test_real_image_gives_finite_poses_of_the_right_shapes(pipeline, images):
     for t in (res.joints_2d, res.joints_3d, res.confidence, res.psm_energy):
         assert bool(torch.isfinite(t).all())
     assert bool(((res.confidence >= 0) & (res.confidence <= 1)).all())
+    assert res.facing_camera.shape == (1,) and 0 <= float(res.facing_camera[0]) <= 1
     torch.testing.assert_close(
         (res.joints_3d[:, R_HIP] + res.joints_3d[:, L_HIP]) / 2,
         torch.zeros(1, 3),

@@ -282,6 +282,7 @@ def test_pose_matches_the_pipeline(pose_engine):
         np.testing.assert_allclose(res.joints_2d, ref.joints_2d[0].numpy(), atol=1e-2)
         np.testing.assert_allclose(res.joints_3d, ref.joints_3d[0].numpy(), atol=1e-2)
         assert res.joint_set == ref.joint_set[0] and res.confidence.shape == (14,)
+        assert res.facing_camera == pytest.approx(float(ref.facing_camera[0]), abs=1e-6)
         assert {"2d_features", "total"} <= set(res.timings_ms)
         # Raw JPEG body, box and intrinsics as query parameters.
         params = {"bbox": json.dumps(box), "intrinsics": json.dumps(k)}
