@@ -67,12 +67,18 @@ def box_mean(x: torch.Tensor, r: int) -> torch.Tensor:
     return s / (k * k)
 
 
+def lab_channels(images: torch.Tensor) -> torch.Tensor:
+    """Channels 0-2 of image_channels alone. images: (B, H, W, 3) uint8 RGB -> (B, 3, H, W)
+    float32, Lab / 100."""
+    return rgb_to_lab(images.permute(0, 3, 1, 2)) / 100.0
+
+
 def image_channels(images: torch.Tensor) -> torch.Tensor:
     """Feature channels of a batch of images.
 
     images: (B, H, W, 3) uint8 RGB -> (B, 12, H, W) float32.
     """
-    lab = rgb_to_lab(images.permute(0, 3, 1, 2)) / 100.0
+    lab = lab_channels(images)
     # Sobel by slicing (mkldnn conv2d costs ~1 ms per small image on CPU).
     p = F.pad(lab[:, :1], (1, 1, 1, 1), mode="replicate")[:, 0]
     sx = p[:, :, 2:] - p[:, :, :-2]  # (B, H + 2, W)

@@ -46,6 +46,7 @@ from ds3d.image2d.features import (
     NUM_IMAGE_CHANNELS,
     evaluate_pool,
     image_channels,
+    lab_channels,
     pad_channels,
     sample_pool,
 )
@@ -251,7 +252,7 @@ def facing_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tenso
         else:
             shoulders = (joints[R_SHOULDER] + joints[L_SHOULDER]) / 2
             centre = (shoulders + torch.tensor([0.0, 6.0]))[None]
-        lab = image_channels(torch.from_numpy(sample.image)[None])[:, :3]
+        lab = lab_channels(torch.from_numpy(sample.image)[None])
         windows[k] = crop(lab, centre, size=FACING_MARGIN)[0].half()
         labels[k] = float(faces_camera(sample.joints))
     return windows, labels
