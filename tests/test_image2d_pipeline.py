@@ -28,7 +28,7 @@ from ds3d.image2d.estimator import (
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
 from ds3d.image2d.train import faces_camera, observer_centric
-from ds3d.paths import data_root
+from ds3d.paths import MODELS_DIR, data_root, project_relative
 from ds3d.skeleton import FLIP
 
 needs_data = pytest.mark.skipif(
@@ -129,6 +129,8 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
     report = json.loads(out.read_text())
     assert report["dataset"] == "LSP train im0991-im1000" and report["n_images"] == 10
     assert report["overrides"] == ["n_scales=2"]
+    assert report["model"] == str(small_model)  # outside the project: as given
+    assert project_relative(MODELS_DIR / "image2d") == "models/image2d"  # same on any checkout
     for name in ("psm", "forest_argmax"):
         assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
     overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "select_stride=none"]
@@ -247,7 +249,8 @@ def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model, c
     rng = np.random.default_rng(4)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 200, 3))]
     res = est.estimate(images)
-    coarse = replace(p, stride=6, unary_blur=1, select_stride=None)  # blur 2 cells of 3 px
+    # blur 2 cells of 3 px; the coarse pass skips the flip test
+    coarse = replace(p, stride=6, unary_blur=1, select_stride=None, flip_test=False)
     # The coarse pass reads the first coarse_trees trees of each layer (all with None).
     layers = [f.first_trees(coarse_trees or f.n_trees) for f in est.layers]
     coarse = PoseEstimator2D(layers, est.mixtures, coarse)
@@ -257,6 +260,27 @@ def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model, c
         fine = est.estimate([image], scales=[chosen])
         torch.testing.assert_close(fine.joints_2d[0], res.joints_2d[i])
         torch.testing.assert_close(fine.score[0], res.score[i])
+
+
+@needs_data
+def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
+    est = PoseEstimator2D.load(small_model)
+    assert est.params.flip_test
+    # 135 px high: the base scale is 1, so the cascade sees the image as it is; (91 - 1) % 3 == 0:
+    # the grid of the mirror image is the image's own, mirrored.
+    image = np.random.default_rng(2).integers(0, 256, (135, 91, 3), dtype=np.uint8)
+    unaries = est.estimate([image], scales=[1.0]).unaries[0]
+    mirrored = est.estimate([image[:, ::-1].copy()], scales=[1.0]).unaries[0]
+    assert unaries.shape == (14, 45, 31)
+    # Probabilities, equal up to the rounding of the integral-image blur (features.box_mean).
+    torch.testing.assert_close(
+        mirrored.exp(), unaries[list(FLIP)].flip(-1).exp(), atol=1e-6, rtol=0
+    )
+    # Without it the cascade is not symmetric: the test above has something to show.
+    est.params = replace(est.params, flip_test=False)
+    plain = est.estimate([image], scales=[1.0]).unaries[0].exp()
+    plain_mirrored = est.estimate([image[:, ::-1].copy()], scales=[1.0]).unaries[0].exp()
+    assert (plain_mirrored - plain[list(FLIP)].flip(-1)).abs().max() > 0.01
 
 
 @needs_data

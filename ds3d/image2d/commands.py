@@ -19,7 +19,7 @@ from ds3d.evaluation.metrics import pck, pixel_error
 from ds3d.image2d.estimator import Estimate2D, EstimatorParams, PoseEstimator2D, read_manifest
 from ds3d.image2d.train import TrainConfig, train, training_annotations, write_manifest
 from ds3d.image_io import read_image
-from ds3d.paths import MODELS_DIR, data_root
+from ds3d.paths import MODELS_DIR, data_root, project_relative
 from ds3d.skeleton import JOINT_NAMES
 
 DEFAULT_MODEL = MODELS_DIR / "image2d"
@@ -109,7 +109,7 @@ def cmd_train(args) -> int:
     params = EstimatorParams(observer_labels=args.observer_labels)
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
     manifest = train(cfg, params, args.out, evaluate=evaluate)
-    print(json.dumps({k: manifest[k] for k in ("train_seconds_1_thread", "metrics")}, indent=2))
+    print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
     return 0
 
 
@@ -164,7 +164,7 @@ def cmd_eval_lsp(args) -> int:
     first = 1 if args.split == "train" else 1001
     result = {
         "dataset": f"LSP {args.split} im{first + args.start:04d}-im{first + end - 1:04d}",
-        "model": str(args.model),
+        "model": project_relative(args.model),
         "overrides": args.set,
     }
     result |= evaluate(est, ann, batch=args.batch)
