@@ -240,16 +240,18 @@ def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
 
 
 @needs_data
-@pytest.mark.parametrize("coarse_trees", [None, 2])
-def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model, coarse_trees):
+@pytest.mark.parametrize("coarse_trees, flip_test", [(None, False), (2, True)])
+def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(
+    small_model, coarse_trees, flip_test
+):
     est = PoseEstimator2D.load(small_model)
-    est.params = replace(est.params, coarse_trees=coarse_trees)
+    est.params = replace(est.params, coarse_trees=coarse_trees, flip_test=flip_test)
     p = est.params
     assert (p.select_stride, p.stride, p.unary_blur) == (6, 3, 2)
     rng = np.random.default_rng(4)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 200, 3))]
     res = est.estimate(images)
-    # blur 2 cells of 3 px; the coarse pass skips the flip test
+    # blur 2 cells of 3 px; the coarse pass never runs the flip test
     coarse = replace(p, stride=6, unary_blur=1, select_stride=None, flip_test=False)
     # The coarse pass reads the first coarse_trees trees of each layer (all with None).
     layers = [f.first_trees(coarse_trees or f.n_trees) for f in est.layers]
@@ -265,7 +267,7 @@ def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(small_model, c
 @needs_data
 def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
     est = PoseEstimator2D.load(small_model)
-    assert est.params.flip_test
+    est.params = replace(est.params, flip_test=True)
     # 135 px high: the base scale is 1, so the cascade sees the image as it is; (91 - 1) % 3 == 0:
     # the grid of the mirror image is the image's own, mirrored.
     image = np.random.default_rng(2).integers(0, 256, (135, 91, 3), dtype=np.uint8)
@@ -276,7 +278,7 @@ def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
     torch.testing.assert_close(
         mirrored.exp(), unaries[list(FLIP)].flip(-1).exp(), atol=1e-6, rtol=0
     )
-    # Without it the cascade is not symmetric: the test above has something to show.
+    # Without it (the default) the cascade is not symmetric: the test has something to show.
     est.params = replace(est.params, flip_test=False)
     plain = est.estimate([image], scales=[1.0]).unaries[0].exp()
     plain_mirrored = est.estimate([image[:, ::-1].copy()], scales=[1.0]).unaries[0].exp()

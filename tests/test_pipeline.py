@@ -221,12 +221,12 @@ def test_predict_command_writes_json_and_a_picture(model_dir, data_dir, tmp_path
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
-# Measured with the bundled model on LSP test im1001-im1032: PCK@0.2 37.5 -> 37.1 %, mean error
-# 21.29 -> 21.18 px; on all 1000 test images: docs/RESULTS.md, pipeline. 32 images are too few
+# Measured with the bundled model on LSP test im1001-im1032: PCK@0.2 35.9 -> 35.5 %, mean error
+# 21.31 -> 21.25 px; on all 1000 test images: docs/RESULTS.md, pipeline. 32 images are too few
 # for either to move reliably: with an earlier 2D model the same images went 20.54 -> 20.77 px.
 # The gates catch a broken refinement (a bug that drew weak joints off the image cost 7 px on
 # held-out images), not noise.
-REFINED_PCK, MARGIN = 0.3705, 0.03
+REFINED_PCK, MARGIN = 0.3549, 0.03
 ERROR_TOLERANCE_PX = 0.5
 
 

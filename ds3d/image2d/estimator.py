@@ -74,10 +74,11 @@ class EstimatorParams:
     # 39.5 vs 40.2 % (docs/RESULTS.md).
     coarse_trees: int | None = 8
     observer_labels: bool = False  # observer-centric cascade + PSM, the facing model decides
-    # The full-stride pass averages each image's class probabilities with its mirror image's
-    # (mapped back): on the held-out images +0.4 / +0.7 points PSM / argmax PCK for 1.4x the
-    # time of the 2D stage (docs/RESULTS.md); the coarse pass never does.
-    flip_test: bool = True
+    # Whether the full-stride pass averages each image's class probabilities with its mirror
+    # image's (mapped back; the coarse pass never does). Off: on the held-out images +0.3 / +0.7
+    # points PSM / argmax PCK and +0.16 px mean error, for 1.6x the time of the 2D stage
+    # (docs/RESULTS.md).
+    flip_test: bool = False
 
 
 def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
