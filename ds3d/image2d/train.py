@@ -266,7 +266,7 @@ def train_facing(windows: Tensor, labels: Tensor, cfg: TrainConfig) -> FacingNet
     every draw cuts a CROP window at a random scale (x0.87-1.15) and shift (+-8 px), mirrors
     it at random (facing the camera is mirror-invariant, so the label stays) and jitters its
     lightness and colour. The colour jitter and 48 epochs instead of 36 took the held-out ROC
-    AUC at predicted poses from 0.805 to 0.845 (docs/RESULTS.md). Seeded by seed * 1000 + 7
+    AUC at predicted poses from 0.805 to 0.847 (docs/RESULTS.md). Seeded by seed * 1000 + 7
     (torch's generator)."""
     torch.manual_seed(cfg.seed * 1000 + 7)
     net = FacingNet()
@@ -351,29 +351,37 @@ def fit_psm(ann: PoseAnnotations, cfg: TrainConfig, params: EstimatorParams) -> 
     )
 
 
-def _grow_cascade(train_ann, items, cfg, params, rng) -> tuple[list[Forest], dict[str, float]]:
-    """The cascade's layers, each on its share of the images (train), and seconds per layer."""
+def _grow_cascade(
+    ann: PoseAnnotations,
+    items: list[list[tuple[int, bool]]],
+    cfg: TrainConfig,
+    params: EstimatorParams,
+    rng: np.random.Generator,
+) -> tuple[list[Forest], dict[str, float]]:
+    """The cascade's layers, each on its share of the images (items: one list of (annotation
+    index, flipped) per layer, see train), and the seconds each took."""
     timings = {}
     layers: list[Forest] = []
     for depth, (n_trees, share) in enumerate(zip(cfg.trees, items, strict=True), 1):
         t0 = time.perf_counter()
         contexts = None
         if layers:
-            contexts = cascade_contexts(train_ann, share, layers, params)
+            contexts = cascade_contexts(ann, share, layers, params)
             log.info(
                 "layer-%d inputs of %d images: %.1fs", depth, len(share), time.perf_counter() - t0
             )
-        layers.append(grow_layer(train_ann, share, contexts, n_trees, cfg, params, rng))
+        layers.append(grow_layer(ann, share, contexts, n_trees, cfg, params, rng))
         timings[f"layer{depth}"] = time.perf_counter() - t0
     return layers, timings
 
 
-def _train_facing_alone(
+def train_facing_on_one_thread(
     ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig, log_level: int
 ) -> tuple[dict[str, Tensor], float]:
-    """facing_windows + train_facing on one torch thread, in a worker process: the state dict
-    and the seconds it took."""
-    logging.basicConfig(level=log_level, format="%(asctime)s %(name)s %(message)s")
+    """facing_windows + train_facing on one torch thread (train runs it in a worker process
+    beside the forests): the state dict and the seconds it took. One thread, because the
+    result depends on the thread count (the order in which gradients are summed)."""
+    logging.basicConfig(level=log_level, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     net = train_facing(*facing_windows(ann, params), cfg)
@@ -403,7 +411,9 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     # about as long as the forests alone, and the CNN is the same whatever --threads says.
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=spawn) as pool:
-        facing = pool.submit(_train_facing_alone, train_ann, params, cfg, log.getEffectiveLevel())
+        facing = pool.submit(
+            train_facing_on_one_thread, train_ann, params, cfg, log.getEffectiveLevel()
+        )
         layers, timings = _grow_cascade(train_ann, items, cfg, params, rng)
         facing_state, timings["facing"] = facing.result()
     layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
