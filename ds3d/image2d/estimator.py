@@ -75,9 +75,9 @@ class EstimatorParams:
     coarse_trees: int | None = 8
     observer_labels: bool = False  # observer-centric cascade + PSM, the facing model decides
     # Whether the full-stride pass averages each image's class probabilities with its mirror
-    # image's (mapped back; the coarse pass never does). Off: on the held-out images +0.3 / +0.7
-    # points PSM / argmax PCK and +0.16 px mean error, for 1.6x the time of the 2D stage
-    # (docs/RESULTS.md).
+    # image's (mapped back; the coarse pass never does). Off by default: on the held-out images
+    # it gained only 0.3 / 0.7 points PSM / argmax PCK, with a 0.16 px worse mean error, for
+    # 1.6-1.9x the time of the 2D stage (docs/RESULTS.md).
     flip_test: bool = False
 
 
