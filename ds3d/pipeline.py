@@ -32,7 +32,7 @@ import torch
 
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
-from ds3d.image2d.estimator import LOG_EPS, Estimate2D, PoseEstimator2D
+from ds3d.image2d.estimator import LOG_EPS, Estimate2D, EstimatorParams, PoseEstimator2D
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
 from ds3d.inputs import intrinsics_batch
 from ds3d.lifter import Lifter, LifterConfig, _timed, image_frame
@@ -54,9 +54,10 @@ class PipelineConfig:
     unaries relative to the 2D stage's (EstimatorParams.unary_weight), against the binaries.
     min_var and unary_weight were chosen on LSP train im0901-im1000 (held out from the 2D
     model's training; docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
-    unary_weight 1 keeps the refinement's unaries at 4x the binaries, as tuned, since the 2D
-    stage's own weight rose from 2 to 4 (0.5 / 1 / 1.5 / 2 on the 300 held-out images: within
-    0.7 point and 0.11 px of one another).
+    unary_weight 1 weighs the refinement's unaries as the 2D stage does (8x the binaries):
+    with the 2D stage's local centroid (EstimatorParams.centroid_radius), 0.5 / 1 / 2 / 4 gave
+    43.1 / 43.4 / 43.2 / 42.9 % PCK after iteration 2 on the 300 held-out images, all below
+    the 2D stage's own 44.0 % (docs/RESULTS.md, pipeline).
     """
 
     iterations: int = 2
@@ -176,15 +177,17 @@ def search_window(
 
 def refine(
     estimate: Estimate2D,
-    unary_weight: float,
+    params: EstimatorParams,
     neighbours_2d: torch.Tensor,
     weights: torch.Tensor,
     config: PipelineConfig,
 ) -> Refinement:
     """eqt:best_segments_pose for every (image, set): B * S PSM problems.
 
-    unary_weight: the factor on the 2D stage's log-prob unaries (estimate.unaries) against
-    the binaries; neighbours_2d: (B, S, N, 14, 2) px, the projected neighbours of each set;
+    params: the 2D stage's; the refinement's unaries are its log-prob unaries
+    (estimate.unaries) times params.unary_weight * config.unary_weight against the binaries,
+    and its joints go where params.joint_cells puts them; neighbours_2d: (B, S, N, 14, 2) px,
+    the projected neighbours of each set;
     weights: (B, S, N) >= 0, their sample weights in the binaries (eq:binary fit on them with
     `config.components` mixtures, all B * S at once). The MAP of an image's S problems is
     searched together, within `config.window_margin` cells of the span of its neighbours
@@ -194,6 +197,7 @@ def refine(
     cells (weighting first would make them cheaper, and draw weak joints off the image).
     """
     b, s, n = neighbours_2d.shape[:3]
+    unary_weight = params.unary_weight * config.unary_weight
     cells = image_to_cells(neighbours_2d.reshape(b, s * n, NUM_JOINTS, 2), estimate.map_to_image)
     windows = [search_window(estimate.unaries[i], cells[i], config.window_margin) for i in range(b)]
     origin = torch.stack([o for _, o in windows])  # (B, 2)
@@ -209,7 +213,7 @@ def refine(
             PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
             stride=1.0,
         )
-        joints.append(res.joints_2d)
+        joints.append(params.joint_cells(window[None].expand(s, -1, -1, -1), res.cells))
         score.append(res.score)
     found = torch.stack(joints).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
     joints_2d = cells_to_image(found, estimate.map_to_image).view(b, s, NUM_JOINTS, 2)
@@ -281,7 +285,6 @@ class Pipeline:
         visible = torch.ones(b, NUM_JOINTS, dtype=torch.bool, device=dev)
         # One frame for every iteration: the warm-started projections stay in its coordinates.
         frame = image_frame(x0, visible, None if k is None else k.to(dev))
-        unary_weight = self.estimator.params.unary_weight * cfg.unary_weight
         usable = lifter.usable_sets(visible)
         rows = torch.arange(b, device=dev)
 
@@ -300,7 +303,7 @@ class Pipeline:
                 )
                 kept_2d = project(kept, params, frame.unsqueeze(1))
             with torch.no_grad(), _timed(timings, "refinement", dev):
-                ref = refine(est, unary_weight, kept_2d, weights, cfg)
+                ref = refine(est, self.estimator.params, kept_2d, weights, cfg)
                 if cfg.selection == "posterior":
                     chosen = torch.where(usable, ref.score, -torch.inf).argmax(-1)
                 else:

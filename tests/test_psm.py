@@ -12,6 +12,7 @@ from ds3d.image2d.psm import (
     PairwiseMixtures,
     fit_pairwise_mixtures,
     infer,
+    local_centroid,
 )
 from ds3d.skeleton import LIMBS, NUM_JOINTS, PARENT
 
@@ -128,6 +129,33 @@ def test_infer_recovers_planted_pose_and_rejects_distractors():
     np.testing.assert_allclose(result.joints_2d[0].numpy(), truth, atol=stride)
     assert result.joints_2d.dtype == torch.float32 and result.cells.dtype == torch.long
     np.testing.assert_allclose(result.joints_2d.numpy(), result.cells.numpy() * stride)
+
+
+def test_local_centroid_finds_sub_cell_peaks_within_its_disc_only():
+    # Joint j's map: a Gaussian bump centred up to half a cell off its MAP cell (4, 5).
+    cell = torch.tensor([4.0, 5.0])
+    centres = cell + torch.tensor([[0.04 * j, -0.02 * j] for j in range(NUM_JOINTS)])
+    peaks = [(j, float(x), float(y), 0.0) for j, (x, y) in enumerate(centres)]
+    unaries = torch.tensor(peaked_unaries(12, 10, peaks, sigma=1.0), dtype=torch.float32)[None]
+    cells = cell.long().expand(1, NUM_JOINTS, 2)
+    found = local_centroid(unaries, cells, radius=2, sharpness=1.0)
+    assert found.shape == (1, NUM_JOINTS, 2) and found.dtype == torch.float32
+    # much nearer the true centre than the cell is (exact at offset 0: the disc is symmetric)
+    error, offset = (found[0] - centres).norm(dim=-1), (cell - centres).norm(dim=-1)
+    assert float(error[0]) < 1e-5 and bool((error[1:] < 0.2 * offset[1:]).all()), error
+    # A higher cell pulls the joint when it lies within the disc (2 cells), not beyond it (3).
+    spikes = torch.full((1, NUM_JOINTS, 12, 10), -6.0)
+    spikes[0, :, 5, 4] = 0.0
+    spikes[0, :7, 5, 6] = 3.0
+    spikes[0, 7:, 5, 7] = 3.0
+    found = local_centroid(spikes, cells, radius=2, sharpness=1.0)[0]
+    assert bool((found[:7, 0] > 5.8).all()) and bool(((found[7:] - cell).abs() < 0.05).all())
+    # at the corner of a flat grid no weight lies off it: the joint moves into the grid
+    flat = torch.zeros(1, NUM_JOINTS, 6, 6)
+    corner = torch.tensor([[0, 0], [3, 2]]).repeat(1, NUM_JOINTS // 2, 1)
+    moved = local_centroid(flat, corner, radius=2, sharpness=4.0)[0]
+    torch.testing.assert_close(moved[1::2], torch.tensor([3.0, 2.0]).expand(7, 2))
+    assert bool((moved[0::2] > 0.5).all())
 
 
 def test_infer_score_is_log_posterior_of_the_map_pose():

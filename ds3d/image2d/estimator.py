@@ -42,7 +42,7 @@ from ds3d.errors import DataFormatError, InvalidImage
 from ds3d.image2d.facing import FacingNet, faces_camera_probability
 from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
 from ds3d.image2d.forest import Forest, predict_proba
-from ds3d.image2d.psm import PairwiseMixtures, infer
+from ds3d.image2d.psm import PairwiseMixtures, infer, local_centroid
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import FLIP, NUM_JOINTS
 
@@ -61,9 +61,15 @@ class EstimatorParams:
     context_blur: int = 1  # box radius (cells) on layer-1 maps before layer 2 reads them
     unary_blur: int = 2  # box radius (cells) on the final maps before the log
     # The PSM sees unary_weight * unaries (relative to the binaries). On the held-out images,
-    # 1 / 2 / 3 / 4 / 5 / 6 gave 39.0 / 40.1 / 41.2 / 40.9 / 41.5 / 41.5 % PCK@0.2
-    # (docs/RESULTS.md): 4 is the middle of the plateau.
-    unary_weight: float = 4.0
+    # with the local centroid below, 3 / 6 / 8 / 12 / 16 gave 42.9 / 44.0 / 44.0 / 44.0 /
+    # 43.6 % PCK@0.2 (docs/RESULTS.md): 8 is the middle of the plateau.
+    unary_weight: float = 8.0
+    # Each joint of the PSM's MAP moves to the centroid of its unary probabilities ^ sharpness
+    # within this many cells (psm.local_centroid; None: stays on its cell). On the held-out
+    # images, with unary_weight 8: 43.9-44.3 % against 42.1 % without it at weight 4 (the
+    # weights and sharpness tried: docs/RESULTS.md).
+    centroid_radius: int | None = 2
+    centroid_sharpness: float = 4.0
     n_scales: int = 6
     scale_factor: float = 0.85
     scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
@@ -79,6 +85,14 @@ class EstimatorParams:
     # it gained only 0.3 / 0.7 points PSM / argmax PCK, with a 0.16 px worse mean error, for
     # 1.6-1.9x the time of the 2D stage (docs/RESULTS.md).
     flip_test: bool = False
+
+    def joint_cells(self, unaries: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+        """Where the joints of a PSM MAP go: unaries (B, 14, H, W) log-probabilities the PSM ran
+        on, its MAP cells (B, 14, 2) long (x, y) -> (B, 14, 2) float32 cells (x, y), the local
+        unary centroids (psm.local_centroid) or, without a centroid radius, the cells."""
+        if self.centroid_radius is None:
+            return cells.float()
+        return local_centroid(unaries, cells, self.centroid_radius, self.centroid_sharpness)
 
 
 def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
@@ -471,11 +485,12 @@ class PoseEstimator2D:
         for rows, _, u in parts:
             unaries[rows] = _pad_maps(u, gh, gw)
         res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
+        working = p.joint_cells(unaries, res.cells) * p.stride  # (B, 14, 2) px, working scale
         faces = torch.ones(len(crops))
         if facing:
             for rows, channels, _ in parts:
                 faces[rows] = self._facing(
-                    channels, res.joints_2d[rows], [sizes[i] for i in rows.tolist()]
+                    channels, working[rows], [sizes[i] for i in rows.tolist()]
                 )
         timings["psm"] += now() - t1
         fac = torch.tensor(
@@ -486,7 +501,7 @@ class PoseEstimator2D:
             dtype=torch.float32,
         )  # (B, 2) working px per image px, (x, y)
         off = torch.tensor([[c.x0, c.y0] for c in crops], dtype=torch.float32)
-        joints = (res.joints_2d + 0.5) / fac[:, None] - 0.5 + off[:, None]
+        joints = (working + 0.5) / fac[:, None] - 0.5 + off[:, None]
         affine = torch.zeros(len(crops), 2, 3)
         affine[:, 0, 0] = p.stride / fac[:, 0]
         affine[:, 1, 1] = p.stride / fac[:, 1]
