@@ -286,6 +286,28 @@ def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
 
 
 @needs_data
+def test_joints_move_from_their_map_cells_to_the_local_centroid_only(small_model):
+    est = PoseEstimator2D.load(small_model)
+    image = np.random.default_rng(5).integers(0, 256, (160, 100, 3), dtype=np.uint8)
+    est.params = replace(est.params, centroid_radius=None)
+    on_grid = est.estimate([image])
+    est.params = replace(est.params, centroid_radius=2)
+    moved = est.estimate([image])
+    # The centroid changes neither the MAP nor its score, nor the chosen scale.
+    torch.testing.assert_close(moved.score, on_grid.score)
+    torch.testing.assert_close(moved.map_to_image, on_grid.map_to_image)
+
+    def to_cells(est2d):  # image px -> unary cells (u, v)
+        a = torch.diagonal(est2d.map_to_image[0, :, :2])
+        return (est2d.joints_2d[0] - est2d.map_to_image[0, :, 2]) / a
+
+    cells = to_cells(on_grid)
+    torch.testing.assert_close(cells, cells.round(), atol=1e-4, rtol=0)  # MAP: on the grid
+    shift = (to_cells(moved) - cells).norm(dim=-1)
+    assert bool((shift <= 6**0.5 + 1e-4).all()) and bool((shift > 1e-3).any())
+
+
+@needs_data
 def test_sample_unaries_reads_the_maps_at_image_points(small_model):
     est = PoseEstimator2D.load(small_model)
     image = np.random.default_rng(1).integers(0, 256, (160, 100, 3), dtype=np.uint8)

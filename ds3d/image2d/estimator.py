@@ -13,7 +13,9 @@ run at the full `stride` with every tree.
 Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background from image
 channels. Each later layer (auto-context) splits on the image channels AND on the previous
 layer's joint probability maps, read at offsets, which lets it use where the other joints
-probably are. Unaries are log(box-blurred probabilities of the last layer).
+probably are. Unaries are log(box-blurred probabilities of the last layer). The PSM's MAP lies
+on the grid of evaluated pixels; each of its joints then moves to the centroid of its unary
+map around it (psm.local_centroid, EstimatorParams.joint_cells).
 
 Left and right. The cascade labels the limb on the image's left "right" in nearly every image,
 as if everyone faced the camera. A small CNN on the image around the PSM's torso
@@ -199,7 +201,8 @@ class Estimate2D:
     """Result of PoseEstimator2D.estimate for B images.
 
     joints_2d: (B, 14, 2) float32, pixels of the input image.
-    joint_scores: (B, 14) float32, the PSM's per-joint max-marginal contribution.
+    joint_scores: (B, 14) float32, each joint's unary log-probability at its MAP cell (before
+        joint_cells moved it; PsmResult.joint_scores).
     score: (B,) float32, the PSM score of the chosen scale.
     unaries: (B, 14, h, w) float32 log-probabilities of the chosen scale, padded to a common
         (h, w) with log(LOG_EPS).
