@@ -301,7 +301,8 @@ def local_centroid(unaries: Tensor, cells: Tensor, radius: int, sharpness: float
     on_grid = (x >= 0) & (x < width) & (y >= 0) & (y < height)
     flat = (y.clamp(0, height - 1) * width + x.clamp(0, width - 1)).flatten(2)  # (B, 14, K)
     logp = unaries.flatten(2).gather(2, flat).float() * sharpness
-    weight = torch.softmax(logp.masked_fill(~on_grid, -torch.inf), dim=-1)  # the cell is on it
+    # never all masked: the joint's own cell lies on the grid
+    weight = torch.softmax(logp.masked_fill(~on_grid, -torch.inf), dim=-1)
     return (weight[..., None] * around.float()).sum(2)
 
 
