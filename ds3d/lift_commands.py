@@ -119,7 +119,8 @@ def lift(args) -> int:
     write_report(
         {
             "model": lifter.model_id,
-            "joints_3d": result.joints_3d.numpy().round(2).tolist(),
+            # rounded in float64: a rounded float32 prints as -135.7100067138672
+            "joints_3d": result.joints_3d.double().numpy().round(2).tolist(),
             "joint_set": result.joint_set,
             "energy": result.energy.tolist(),
             "timings_ms": result.timings_ms,

@@ -28,7 +28,7 @@ from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import JOINT_SETS, NUM_JOINTS, SET_NAMES, hip_midpoint
+from ds3d.skeleton import JOINT_SETS, SET_NAMES, hip_midpoint, joint_set_mask
 
 
 @dataclass(frozen=True)
@@ -89,9 +89,7 @@ class Lifter:
             raise ValueError("the index settings are fixed when a Lifter is built")
         self.config = config
         self.set_ids = [SET_NAMES.index(name) for name in config.joint_sets]
-        masks = torch.zeros(len(SET_NAMES), NUM_JOINTS)
-        for s, name in enumerate(SET_NAMES):
-            masks[s, list(JOINT_SETS[name])] = 1
+        masks = torch.from_numpy(joint_set_mask())  # (5, 14), SET_NAMES order
         self.set_masks = masks[self.set_ids].to(self.device)  # (S, 14)
 
     @classmethod

@@ -52,8 +52,8 @@ class PipelineConfig:
     cells^2 (one cell is `stride` px at the working scale). window_margin: cells of search
     region around the neighbours' projections (search_window). unary_weight: the refinement's
     unaries relative to the 2D stage's (EstimatorParams.unary_weight), against the binaries.
-    min_var and unary_weight were chosen on LSP train im0901-im1000 (held out from the 2D
-    model's training; docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
+    min_var and unary_weight were chosen on LSP train images held out from the 2D model's
+    training (docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
     unary_weight 1 weighs the refinement's unaries as the 2D stage does (8x the binaries):
     with the 2D stage's local centroid (EstimatorParams.centroid_radius), 0.5 / 1 / 2 / 4 gave
     43.1 / 43.4 / 43.2 / 42.9 % PCK after iteration 2 on the 300 held-out images, all below
@@ -89,7 +89,8 @@ class PipelineResult:
         near 0.5 says the left/right labels are a guess.
     joint_set: B names, the chosen set s^.
     psm_energy: (B, T) float32, the negative MAP log-posterior of x^ after each iteration
-        (non-increasing in t).
+        (non-increasing in t with selection "posterior", which keeps the better pose; with
+        "energy" the last iteration's pose is kept).
     iterations: T, the number of iterations run.
     timings_ms: wall time of each stage for the whole batch.
     """

@@ -171,6 +171,9 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     assert res.joints_2d.shape == (2, 14, 2) and torch.isfinite(res.joints_2d).all()
     assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
     assert res.unaries.shape[:2] == (2, 14) and (res.unaries <= 0).all()
+    # each joint's score is its own unary at some cell (not the PSM's weighted unary)
+    at_a_cell = torch.isclose(res.unaries.flatten(2), res.joint_scores[..., None]).any(-1)
+    assert at_a_cell.all()
     assert set(res.timings) == {"features", "traversal", "psm", "total"}
     # each image alone gives the same pose and unaries as in the batch (padding does not leak,
     # not even into the cells at an image's right and bottom edges)

@@ -79,7 +79,7 @@ class EstimatorParams:
     # `stride` (None: every scale at `stride`, the best PSM score wins; 1.5-2x slower).
     select_stride: int | None = 6
     # Trees per layer in the coarse pass (None: all). 8 of 16: 1.3x faster, validation PCK
-    # 39.5 vs 40.2 % (docs/RESULTS.md).
+    # 39.5 vs 40.2 % with the model of the time (docs/RESULTS.md, inference).
     coarse_trees: int | None = 8
     observer_labels: bool = False  # observer-centric cascade + PSM, the facing model decides
     # Whether the full-stride pass averages each image's class probabilities with its mirror
@@ -511,7 +511,7 @@ class PoseEstimator2D:
         affine[:, :, 2] = 0.5 / fac - 0.5 + off
         return Estimate2D(
             joints,
-            res.joint_scores.float(),
+            res.joint_scores.float() / p.unary_weight,  # the PSM ran on weighted unaries
             res.score.float(),
             unaries,
             affine,

@@ -12,7 +12,7 @@ Export layout (all trees concatenated, N nodes, L leaves; compact dtypes keep th
     threshold: (N,) float32  go left iff value <= threshold; leaves +inf, so they stay put
     left:      (N,) int32    left child; the right child is always left + 1; leaves point to
                              themselves (renumbered breadth-first so siblings are adjacent)
-    leaf:      (N,) int32    row in leaf_values for leaves, 0 for internal nodes
+    leaf:      (N,) int32    row in leaf_values for leaves (unused for internal nodes)
     leaf_values: (L, K) float16  class distribution of each leaf
     roots:     (T,) int64
 """
@@ -52,10 +52,6 @@ class Forest:
     @property
     def n_trees(self) -> int:
         return len(self.roots)
-
-    @property
-    def n_classes(self) -> int:
-        return self.leaf_values.shape[1]
 
     @cached_property
     def node_reads(self) -> tuple[torch.Tensor, ...]:
