@@ -38,6 +38,7 @@ from ds3d.inputs import intrinsics_batch
 from ds3d.lifter import Lifter, LifterConfig, _timed, image_frame
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import NUM_JOINTS
+from ds3d.threads import map_on_threads, split_rows
 
 STEPS_2D = ("features", "traversal", "psm")  # the steps of Estimate2D.timings, s
 
@@ -206,19 +207,27 @@ def refine(
     mixtures = fit_pairwise_mixtures(
         local, weights.reshape(b * s, n), n_components=config.components, min_var=config.min_var
     )
-    joints, score = [], []
-    for i, (window, _) in enumerate(windows):
-        part = slice(i * s, (i + 1) * s)
-        res = infer(
-            (unary_weight * window)[None].expand(s, -1, -1, -1),
-            PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
-            stride=1.0,
-        )
-        joints.append(params.joint_cells(window[None].expand(s, -1, -1, -1), res.cells))
-        score.append(res.score)
-    found = torch.stack(joints).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
+
+    def solve(rows: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(cells (S, 14, 2), score (S,)) of the S problems of each image in rows."""
+        out = []
+        for i in rows.tolist():
+            window, part = windows[i][0], slice(i * s, (i + 1) * s)
+            res = infer(
+                (unary_weight * window)[None].expand(s, -1, -1, -1),
+                PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
+                stride=1.0,
+            )
+            out.append(
+                (params.joint_cells(window[None].expand(s, -1, -1, -1), res.cells), res.score)
+            )
+        return out
+
+    # One image at a time (each its own window), so whole images go to parallel threads.
+    solved = [one for part in map_on_threads(solve, split_rows(b)) for one in part]
+    found = torch.stack([c for c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
     joints_2d = cells_to_image(found, estimate.map_to_image).view(b, s, NUM_JOINTS, 2)
-    return Refinement(joints_2d, torch.stack(score))
+    return Refinement(joints_2d, torch.stack([score for _, score in solved]))
 
 
 class Pipeline:

@@ -1,16 +1,29 @@
-"""Shared fixtures. Tests that need the datasets skip when $DS3D_DATA is absent; CI has them."""
+"""Shared fixtures and helpers. Tests that need the datasets skip when $DS3D_DATA is absent; CI
+has them."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import pytest
+import torch
 
 from ds3d.paths import MODELS_DIR, data_root
 
 
 def pytest_configure(config):
-    import torch
-
     torch.set_num_threads(2)
+
+
+@contextmanager
+def torch_threads(n: int):
+    """torch.set_num_threads(n) for the block, restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")

@@ -3,7 +3,6 @@
 import argparse
 import json
 import re
-from contextlib import contextmanager
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -11,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import torch_threads
 
 from ds3d.cli import field_overrides
 from ds3d.errors import InvalidImage
@@ -34,17 +34,6 @@ from ds3d.skeleton import FLIP
 needs_data = pytest.mark.skipif(
     not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
 )
-
-
-@contextmanager
-def torch_threads(n: int):
-    """torch.set_num_threads(n) for the block, restored after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _cli(argv):

@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from conftest import torch_threads
 
 from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
@@ -167,6 +168,35 @@ def test_refinement_keeps_weak_joints_on_the_grid():
     ref = refine(estimate, params, neighbours, torch.ones(1, 1, 32), config)
     joints = ref.joints_2d[0, 0]
     assert bool((joints >= 0).all() & (joints <= 9).all()), joints
+
+
+def test_refinement_on_two_threads_equals_one_thread():
+    # refine splits the images across threads (ds3d.threads); its result must not depend on it
+    gen = torch.Generator().manual_seed(1)
+    b, s, n = 3, 2, 16
+    logits = torch.randn(b, NUM_JOINTS, 12 * 10, generator=gen)
+    unaries = torch.log_softmax(logits, -1).view(b, NUM_JOINTS, 12, 10)
+    identity = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]).expand(b, -1, -1)
+    ones = torch.ones(b)
+    estimate = Estimate2D(
+        torch.zeros(b, NUM_JOINTS, 2),
+        torch.zeros(b, NUM_JOINTS),
+        ones,
+        unaries,
+        identity,
+        ones,
+        ones,
+    )
+    pose = torch.rand(NUM_JOINTS, 2, generator=gen) * torch.tensor([9.0, 11.0])
+    neighbours = pose + 0.7 * torch.randn(b, s, n, NUM_JOINTS, 2, generator=gen)
+    weights = torch.rand(b, s, n, generator=gen)
+    runs = []
+    for threads in (1, 2):
+        with torch_threads(threads):
+            runs.append(refine(estimate, EstimatorParams(), neighbours, weights, PipelineConfig()))
+    assert not torch.equal(runs[0].joints_2d[0], runs[0].joints_2d[2])  # the images differ
+    assert torch.equal(runs[0].joints_2d, runs[1].joints_2d)
+    assert torch.equal(runs[0].score, runs[1].score)
 
 
 def _batch(estimates: list[Estimate2D]) -> Estimate2D:

@@ -32,7 +32,6 @@ import gzip
 import io
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -47,6 +46,7 @@ from ds3d.image2d.forest import Forest, predict_proba
 from ds3d.image2d.psm import PairwiseMixtures, infer, local_centroid
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.threads import map_on_threads, split_rows
 
 LOG_EPS = 1e-4  # floor of the probabilities before the log: keeps unaries finite
 
@@ -397,18 +397,13 @@ class PoseEstimator2D:
         t_start = now()
         crops = _crops(images, bboxes, self.params)
         scales = list(scales) if scales is not None else self.scales()
-        splits = np.array_split(np.arange(len(crops)), torch.get_num_threads())
-        parts = [torch.from_numpy(rows) for rows in splits if len(rows)]
+        parts = split_rows(len(crops))
+        results = map_on_threads(
+            lambda rows: self._estimate_crops([crops[i] for i in rows], scales), parts
+        )
         if len(parts) == 1:
-            best = self._estimate_crops(crops, scales)
+            best = results[0]
         else:
-
-            def run(rows: torch.Tensor) -> Estimate2D:
-                torch.set_num_threads(1)  # this thread's intra-op threads only
-                return self._estimate_crops([crops[i] for i in rows], scales)
-
-            with ThreadPoolExecutor(max_workers=len(parts)) as pool:
-                results = list(pool.map(run, parts))
             best = _gather_rows(list(zip(parts, results, strict=True)), len(crops))
             best.timings = {k: sum(r.timings[k] for r in results) for k in results[0].timings}
         timings = {k: round(v, 6) for k, v in best.timings.items()}
