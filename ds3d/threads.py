@@ -8,14 +8,26 @@ contiguous parts run at once on N threads of one intra-op thread each.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
 import numpy as np
 import torch
 
 T = TypeVar("T")
+
+
+@contextmanager
+def intra_op_threads(n: int) -> Iterator[None]:
+    """torch.set_num_threads(n) for the block, the calling thread's setting restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def split_rows(n: int) -> list[torch.Tensor]:
@@ -32,8 +44,8 @@ def map_on_threads(fn: Callable[[torch.Tensor], T], parts: list[torch.Tensor]) -
         return [fn(parts[0])]
 
     def run(rows: torch.Tensor) -> T:
-        torch.set_num_threads(1)  # this worker thread's intra-op threads only
-        return fn(rows)
+        with intra_op_threads(1):
+            return fn(rows)
 
     with ThreadPoolExecutor(max_workers=len(parts)) as pool:
         return list(pool.map(run, parts))

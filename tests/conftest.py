@@ -1,9 +1,6 @@
-"""Shared fixtures and helpers. Tests that need the datasets skip when $DS3D_DATA is absent; CI
-has them."""
+"""Shared fixtures. Tests that need the datasets skip when $DS3D_DATA is absent; CI has them."""
 
 from __future__ import annotations
-
-from contextlib import contextmanager
 
 import pytest
 import torch
@@ -13,17 +10,6 @@ from ds3d.paths import MODELS_DIR, data_root
 
 def pytest_configure(config):
     torch.set_num_threads(2)
-
-
-@contextmanager
-def torch_threads(n: int):
-    """torch.set_num_threads(n) for the block, restored after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import torch_threads
 
 from ds3d.cli import field_overrides
 from ds3d.errors import InvalidImage
@@ -30,6 +29,7 @@ from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
 from ds3d.image2d.train import faces_camera, observer_centric
 from ds3d.paths import MODELS_DIR, data_root, project_relative
 from ds3d.skeleton import FLIP
+from ds3d.threads import intra_op_threads
 
 needs_data = pytest.mark.skipif(
     not (data_root() / "lsp" / "joints.mat").is_file(), reason="LSP data not available"
@@ -155,7 +155,7 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     est = PoseEstimator2D.load(small_model)
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (240, 320, 3))]
-    with torch_threads(1):  # one padded batch (more threads would split it)
+    with intra_op_threads(1):  # one padded batch (more threads would split it)
         res = est.estimate(images, bboxes=[None, (100, 40, 160, 200)])
     assert res.joints_2d.shape == (2, 14, 2) and torch.isfinite(res.joints_2d).all()
     assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
@@ -181,9 +181,9 @@ def test_threads_split_the_batch_without_changing_any_result(small_model, thread
     rng = np.random.default_rng(5)
     shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
-    with torch_threads(1):
+    with intra_op_threads(1):
         one = est.estimate(images)
-    with torch_threads(threads):
+    with intra_op_threads(threads):
         split = est.estimate(images)
         assert torch.get_num_threads() == threads  # the caller's setting is left alone
     for name in ("joints_2d", "joint_scores", "score", "unaries", "map_to_image", "scale"):
@@ -220,7 +220,7 @@ def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
     shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
     results = []
-    with torch_threads(1):
+    with intra_op_threads(1):
         # one image per group; groups of 2-3 (4-6 MB per padded image here); all in one
         for budget in (0, 10 * 2**20, 2**40):
             monkeypatch.setattr(estimator, "GROUP_BYTES", budget)

@@ -9,7 +9,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import torch_threads
 
 from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
@@ -28,6 +27,7 @@ from ds3d.pipeline import (
     search_window,
 )
 from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
+from ds3d.threads import intra_op_threads
 
 
 @pytest.fixture(scope="module")
@@ -192,7 +192,7 @@ def test_refinement_on_two_threads_equals_one_thread():
     weights = torch.rand(b, s, n, generator=gen)
     runs = []
     for threads in (1, 2):
-        with torch_threads(threads):
+        with intra_op_threads(threads):
             runs.append(refine(estimate, EstimatorParams(), neighbours, weights, PipelineConfig()))
     assert not torch.equal(runs[0].joints_2d[0], runs[0].joints_2d[2])  # the images differ
     assert torch.equal(runs[0].joints_2d, runs[1].joints_2d)
