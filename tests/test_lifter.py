@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+from ds3d import lifter as lifter_module
 from ds3d.errors import InvalidPose
 from ds3d.evaluation.h36m import evaluate, protocol_cases
 from ds3d.skeleton import HEAD_TOP, JOINT_SETS, L_HIP, L_WRIST, R_ANKLE, R_HIP
@@ -56,6 +57,20 @@ def test_batch_results_equal_one_by_one_results(lifter, cases):
         single = lifter.lift(part.joints_2d[i : i + 1], intrinsics=part.intrinsics[i : i + 1])
         torch.testing.assert_close(single.joints_3d[0], batch.joints_3d[i], atol=0.5, rtol=0)
         assert single.joint_set[0] == batch.joint_set[i]
+
+
+def test_one_fit_for_all_sets_equals_one_fit_per_set(lifter, cases, monkeypatch):
+    # small batches fit every joint set in one L-BFGS call, the set's joints masked; larger
+    # ones one call per set on the set's own joints: the same problems, the same answers
+    part = cases.subset(np.arange(4))
+    visible = np.ones((4, 14), dtype=bool)
+    visible[1, [L_WRIST, R_ANKLE]] = False
+    one = lifter.lift(part.joints_2d, visible, part.intrinsics)
+    monkeypatch.setattr(lifter_module, "ONE_FIT_BELOW", 0)
+    per_set = lifter.lift(part.joints_2d, visible, part.intrinsics)
+    torch.testing.assert_close(one.set_energies, per_set.set_energies, rtol=1e-3, atol=1e-3)
+    torch.testing.assert_close(one.joints_3d, per_set.joints_3d, atol=0.5, rtol=0)
+    assert one.joint_set == per_set.joint_set
 
 
 def test_hidden_joints_are_left_out(lifter, cases):
