@@ -190,17 +190,17 @@ class Lifter:
         (B, S, K). Below ONE_FIT_BELOW poses, all B * S problems are one L-BFGS call on all 14
         joints, the set's own masked; from it on, one call per set on its own joints only (a
         third less work than masking, which pays once the work outweighs the calls' overhead)."""
-        b, s = candidates.shape[:2]
+        b, n_sets = candidates.shape[:2]
         if b < ONE_FIT_BELOW:
             params, residuals = fit_projection(
                 candidates.flatten(0, 1),
-                joints_2d.repeat_interleave(s, 0),
+                joints_2d.repeat_interleave(n_sets, 0),
                 (self.set_masks[None] * visible[:, None].float()).flatten(0, 1),
-                frame.repeat(s),
+                frame.repeat(n_sets),
                 None if start is None else start.flatten(0, 1),
                 self.config.projection_iterations,
             )
-            return params.view(b, s, -1), residuals.view(b, s, -1)
+            return params.view(b, n_sets, -1), residuals.view(b, n_sets, -1)
         params, residuals = [], []
         for s, name in enumerate(self.config.joint_sets):
             joints = list(JOINT_SETS[name])
