@@ -22,10 +22,12 @@ from ds3d.image2d.estimator import (
     _person_centric,
     _traversal_groups,
     context_channels,
+    layer_context,
     valid_cells,
 )
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
+from ds3d.image2d.psm import fit_pairwise_mixtures
 from ds3d.image2d.train import faces_camera, observer_centric
 from ds3d.paths import MODELS_DIR, data_root, project_relative
 from ds3d.skeleton import FLIP
@@ -148,6 +150,43 @@ def test_observer_centric_model_trains_and_decides_facing(tmp_path):
     res = est.estimate([image, image[:, ::-1].copy()])
     assert res.facing_camera.shape == (2,)
     assert ((res.facing_camera >= 0) & (res.facing_camera <= 1)).all()
+
+
+def test_layer_context_adds_heatmaps_of_the_psm_pose_on_the_maps():
+    # a planted pose: each joint's probability peaks at its own cell, so the PSM's MAP (on
+    # these unaries, binaries fitted on the planted pose itself) puts every joint there
+    gen = torch.Generator().manual_seed(0)
+    cells = torch.stack([torch.randint(4, 30, (14,), generator=gen), torch.arange(14) * 2 + 3], -1)
+    probs = torch.full((1, 15, 34, 34), 1e-3)
+    probs[0, torch.arange(14), cells[:, 1], cells[:, 0]] = 0.9
+    mixtures = fit_pairwise_mixtures(cells[None, None].float() * 3.0, n_components=1)
+    # sigma 2 cells at stride 3; no blur of the unaries, so that each joint's peak is one cell
+    params = EstimatorParams(context_pose_sigma=6.0, unary_blur=0)
+    context = layer_context(probs, params, mixtures)
+    assert context.shape == (1, 28, 34, 34)
+    torch.testing.assert_close(context[:, :14], box_mean(probs[:, :14], params.context_blur))
+    heat = context[0, 14:]
+    assert torch.equal(heat.flatten(1).argmax(1), cells[:, 1] * 34 + cells[:, 0])
+    assert heat.amax() == 1.0 and float(heat[0, cells[0, 1], cells[0, 0] + 2]) == pytest.approx(
+        float(np.exp(-0.5))
+    )
+    without = layer_context(probs, replace(params, context_pose_sigma=None), None)
+    torch.testing.assert_close(without, context[:, :14])
+
+
+@needs_data
+def test_a_model_whose_layer_2_reads_the_psm_pose_trains_and_runs(tmp_path):
+    argv = ["train-2d", "--small", "--no-eval", "--context-pose-sigma", "6", "--out", str(tmp_path)]
+    assert _cli(argv) == 0
+    est = PoseEstimator2D.load(tmp_path)
+    assert est.params.context_pose_sigma == 6.0
+    assert est.layers[1].n_channels == 12 + 2 * 14  # image, layer-1 maps, pose heatmaps
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 160, 3))]
+    with intra_op_threads(1):  # one padded batch
+        batch = est.estimate(images)
+    for i, image in enumerate(images):  # the PSM in the context does not see the padding
+        torch.testing.assert_close(est.estimate([image]).joints_2d[0], batch.joints_2d[i])
 
 
 @needs_data

@@ -56,6 +56,14 @@ def register(commands, evals, benches) -> None:
         action="store_true",
         help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
     )
+    p.add_argument(
+        "--context-pose-sigma",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="layer 2 also reads the PSM's pose on layer 1's maps, as heatmaps of this sigma "
+        "(EstimatorParams.context_pose_sigma; 6 px measured at small scale, docs/RESULTS.md)",
+    )
     p.set_defaults(func=cmd_train)
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
@@ -106,7 +114,9 @@ def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
-    params = EstimatorParams(observer_labels=args.observer_labels)
+    params = EstimatorParams(
+        observer_labels=args.observer_labels, context_pose_sigma=args.context_pose_sigma
+    )
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
     manifest = train(cfg, params, args.out, evaluate=evaluate)
     print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))

@@ -61,6 +61,11 @@ class EstimatorParams:
     box_margin: float = 0.35  # context kept around a box, fraction of the extent per side
     stride: int = 3  # px between evaluated pixels (one unary cell)
     context_blur: int = 1  # box radius (cells) on layer-1 maps before layer 2 reads them
+    # Whether a context layer also reads the PSM's MAP pose on the layer before's maps, as one
+    # Gaussian heatmap per joint of this sigma (px at the working scale; None: the maps alone).
+    # Fixed by training (layer_context). Small cascades on the held-out images: 42.7 % against
+    # 40.2 % without (docs/RESULTS.md, what to do next).
+    context_pose_sigma: float | None = None
     unary_blur: int = 2  # box radius (cells) on the final maps before the log
     # The PSM sees unary_weight * unaries (relative to the binaries). On the held-out images,
     # with the local centroid below, 3 / 6 / 8 / 12 / 16 gave 42.9 / 44.0 / 44.0 / 44.0 /
@@ -147,17 +152,48 @@ def context_channels(
     )
 
 
+def pose_heatmaps(cells: torch.Tensor, height: int, width: int, sigma: float) -> torch.Tensor:
+    """One Gaussian bump per joint: cells (B, 14, 2) (x, y) on a height x width grid, sigma in
+    cells -> (B, 14, height, width) float32, 1 at each joint's cell."""
+    ys = torch.arange(height, dtype=torch.float32).view(1, 1, -1, 1)
+    xs = torch.arange(width, dtype=torch.float32).view(1, 1, 1, -1)
+    dx = xs - cells[..., 0, None, None].float()
+    dy = ys - cells[..., 1, None, None].float()
+    return torch.exp(-0.5 * (dx * dx + dy * dy) / (sigma * sigma))
+
+
+def layer_context(
+    probs: torch.Tensor, params: EstimatorParams, mixtures: PairwiseMixtures | None
+) -> torch.Tensor:
+    """What a context layer reads of the layer before it, on the grid: (B, 15, gh, gw) class
+    probabilities -> (B, 14, gh, gw) joint maps box-blurred by context_blur, with
+    context_pose_sigma followed by (B, 14, gh, gw) heatmaps of the MAP pose of the PSM
+    (`mixtures`) on those probabilities' unaries (as the 2D stage weighs them): the trees can
+    then split on where the best whole pose puts each joint, not only on each joint's map."""
+    maps = box_mean(probs[:, :NUM_JOINTS].float(), params.context_blur)
+    if params.context_pose_sigma is None:
+        return maps
+    if mixtures is None:
+        raise ValueError("context_pose_sigma needs the PSM's mixtures")
+    unaries = unaries_from_probs(probs.float(), params.unary_blur)
+    cells = infer(unaries * params.unary_weight, mixtures, stride=float(params.stride)).cells
+    sigma = params.context_pose_sigma / params.stride
+    return torch.cat([maps, pose_heatmaps(cells, *maps.shape[-2:], sigma)], dim=1)
+
+
 def cascade_probs(
     layers: list[Forest],
     channels: torch.Tensor,
     params: EstimatorParams,
     sizes: list[tuple[int, int]] | None = None,
+    mixtures: PairwiseMixtures | None = None,
 ) -> list[torch.Tensor]:
     """Run the forest cascade on a batch.
 
     channels: (B, 12, H, W) from image_channels, zero outside each image;
     sizes: None (every image fills H x W) or B (h, w) sizes of the images in a zero-padded
-    batch: context maps are zeroed outside each image, as around a single image in training
+    batch: context maps are zeroed outside each image, as around a single image in training;
+    mixtures: the PSM's, for layer_context with context_pose_sigma
     -> one (B, 15, gh, gw) class-probability map per layer (joints 0-13, background 14), on the
     grid of grid_positions(H, W, stride).
     """
@@ -170,8 +206,8 @@ def cascade_probs(
     stack = channels
     for i, forest in enumerate(layers):
         if i > 0:
-            prev = outputs[-1][:, :NUM_JOINTS]
-            ctx = context_channels(box_mean(prev, params.context_blur), params.stride, h, w, sizes)
+            context = layer_context(outputs[-1], params, mixtures)
+            ctx = context_channels(context, params.stride, h, w, sizes)
             if inside_px is not None:
                 ctx = ctx * inside_px
             stack = torch.cat([channels, ctx], dim=1)
@@ -473,7 +509,7 @@ class PoseEstimator2D:
         sizes = [r.shape[:2] for r in resized]
         timings["features"] += now() - t0
         parts = [
-            _group_unaries(resized, rows, layers, p, timings)
+            _group_unaries(resized, rows, layers, self.mixtures, p, timings)
             for rows in _traversal_groups(sizes, layers[-1])
         ]
         t1 = now()
@@ -520,6 +556,7 @@ def _group_unaries(
     images: list[np.ndarray],
     rows: list[int],
     layers: list[Forest],
+    mixtures: PairwiseMixtures,
     p: EstimatorParams,
     timings: dict[str, float],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -533,10 +570,10 @@ def _group_unaries(
     the traversal to timings."""
     group = [images[i] for i in rows]
     sizes = [image.shape[:2] for image in group]
-    channels, probs = _group_probs(group, layers, p, timings)
+    channels, probs = _group_probs(group, layers, mixtures, p, timings)
     if p.flip_test:
         mirrors = [mirror_on_grid(image, p.stride) for image in group]
-        mirrored = _group_probs(mirrors, layers, p, timings)[1]
+        mirrored = _group_probs(mirrors, layers, mixtures, p, timings)[1]
         probs = (probs + _unmirror(mirrored, sizes, p.stride, probs.shape)) / 2
     unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
     valid = valid_cells(sizes, channels.shape[2], channels.shape[3], p.stride)  # (b, 1, gh, gw)
@@ -545,16 +582,20 @@ def _group_unaries(
 
 
 def _group_probs(
-    group: list[np.ndarray], layers: list[Forest], p: EstimatorParams, timings: dict[str, float]
+    group: list[np.ndarray],
+    layers: list[Forest],
+    mixtures: PairwiseMixtures,
+    p: EstimatorParams,
+    timings: dict[str, float],
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Images (H_i, W_i, 3) uint8 zero-padded into one batch -> their channels (b, 12, H, W)
-    and the last layer's probabilities (b, 15, gh, gw); adds the seconds of the features and of
-    the traversal to timings."""
+    and the last layer's probabilities (b, 15, gh, gw) (mixtures: the PSM's, for
+    layer_context); adds the seconds of the features and of the traversal to timings."""
     t0 = now()
     sizes = [image.shape[:2] for image in group]
     channels = _batch_channels(group, max(h for h, _ in sizes), max(w for _, w in sizes))
     t1 = now()
-    probs = cascade_probs(layers, channels, p, sizes)[-1]
+    probs = cascade_probs(layers, channels, p, sizes, mixtures)[-1]
     timings["features"] += t1 - t0
     timings["traversal"] += now() - t1
     return channels, probs

@@ -37,9 +37,9 @@ from torch import Tensor
 from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.image2d.estimator import (
     EstimatorParams,
-    box_mean,
     cascade_probs,
     context_channels,
+    layer_context,
     resize_image,
     save_forest,
 )
@@ -167,14 +167,13 @@ def sample_pixels(
 def stacked_channels(
     sample: TrainingImage, context: torch.Tensor | None, params: EstimatorParams
 ) -> torch.Tensor:
-    """(1, C, H, W) channels the layer reads: image channels, plus layer-1 context if given
-    (context: (1, 15, gh, gw) layer-1 probabilities on the stride grid)."""
+    """(1, C, H, W) channels the layer reads: image channels, plus the context if given
+    (context: (1, C_ctx, gh, gw) layer_context of the layers before, on the stride grid)."""
     ch = image_channels(torch.from_numpy(sample.image)[None])
     if context is None:
         return ch
     h, w = sample.image.shape[:2]
-    ctx = box_mean(context[:, :NUM_JOINTS].float(), params.context_blur)
-    return torch.cat([ch, context_channels(ctx, params.stride, h, w)], dim=1)
+    return torch.cat([ch, context_channels(context.float(), params.stride, h, w)], dim=1)
 
 
 def grow_layer(
@@ -187,8 +186,8 @@ def grow_layer(
     rng: np.random.Generator,
 ) -> Forest:
     """Grow one cascade layer. items: (annotation index, flipped) pairs the layer may use;
-    contexts: layer-1 maps per item for a context layer, None for layer 1."""
-    n_ctx = NUM_JOINTS if contexts is not None else 0
+    contexts: cascade_contexts per item for a context layer, None for layer 1."""
+    n_ctx = 0 if contexts is None else next(iter(contexts.values())).shape[1]
     trees = []
     for t in range(n_trees):
         t0 = time.perf_counter()
@@ -301,13 +300,17 @@ def cascade_contexts(
     items: list[tuple[int, bool]],
     layers: list[Forest],
     params: EstimatorParams,
+    mixtures: PairwiseMixtures,
 ) -> dict[tuple[int, bool], torch.Tensor]:
-    """The last layer's probabilities (1, 15, gh, gw) float16 per item at the working scale."""
+    """What the next layer reads of `layers` per item at the working scale: layer_context
+    (1, C, gh, gw) float32 of the last layer's probabilities, rounded to float16 first (the
+    layer 2 of the bundled model was grown on float16 maps; the rounding keeps it reproducible)."""
     out = {}
     for item in items:
         sample = load_training_image(ann, item[0], item[1], params)
         ch = image_channels(torch.from_numpy(sample.image)[None])
-        out[item] = cascade_probs(layers, ch, params)[-1].half()
+        probs = cascade_probs(layers, ch, params, mixtures=mixtures)[-1]
+        out[item] = layer_context(probs.half().float(), params, mixtures)
     return out
 
 
@@ -356,17 +359,19 @@ def _grow_cascade(
     items: list[list[tuple[int, bool]]],
     cfg: TrainConfig,
     params: EstimatorParams,
+    mixtures: PairwiseMixtures,
     rng: np.random.Generator,
 ) -> tuple[list[Forest], dict[str, float]]:
     """The cascade's layers, each on its share of the images (items: one list of (annotation
-    index, flipped) per layer, see train), and the seconds each took."""
+    index, flipped) per layer, see train; mixtures: the PSM's, for the contexts), and the
+    seconds each took."""
     timings = {}
     layers: list[Forest] = []
     for depth, (n_trees, share) in enumerate(zip(cfg.trees, items, strict=True), 1):
         t0 = time.perf_counter()
         contexts = None
         if layers:
-            contexts = cascade_contexts(ann, share, layers, params)
+            contexts = cascade_contexts(ann, share, layers, params, mixtures)
             log.info(
                 "layer-%d inputs of %d images: %.1fs", depth, len(share), time.perf_counter() - t0
             )
@@ -406,6 +411,8 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     ]
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    mixtures = fit_psm(train_ann, cfg, params)  # first: the cascade's contexts may run the PSM
+    timings = {"psm": time.perf_counter() - t0}
     # The facing CNN needs nothing from the forests: it trains beside them in a process of its
     # own on one thread (scikit-learn grows a tree on one core), so the whole training takes
     # about as long as the forests alone, and the CNN is the same whatever --threads says.
@@ -414,16 +421,15 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         facing = pool.submit(
             train_facing_on_one_thread, train_ann, params, cfg, log.getEffectiveLevel()
         )
-        layers, timings = _grow_cascade(train_ann, items, cfg, params, rng)
+        layers, layer_timings = _grow_cascade(train_ann, items, cfg, params, mixtures, rng)
         facing_state, timings["facing"] = facing.result()
+    timings.update(layer_timings)
     layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
     for forest, name in zip(layers, layer_files, strict=True):
         save_forest(forest, out_dir / name)
     facing_file = "facing.pt"
     torch.save(facing_state, out_dir / facing_file)
-    t2 = time.perf_counter()
-    torch.save(fit_psm(train_ann, cfg, params).state_dict(), out_dir / "psm.pt")
-    timings["psm"] = time.perf_counter() - t2
+    torch.save(mixtures.state_dict(), out_dir / "psm.pt")
     timings["total"] = time.perf_counter() - t0
     manifest = {
         "model": "ds3d 2D pose: forest cascade unaries + pictorial structure model",
