@@ -175,12 +175,13 @@ def test_layer_context_adds_heatmaps_of_the_psm_pose_on_the_maps():
 
 
 @needs_data
-def test_a_model_whose_layer_2_reads_the_psm_pose_trains_and_runs(tmp_path):
-    argv = ["train-2d", "--small", "--no-eval", "--context-pose-sigma", "6", "--out", str(tmp_path)]
-    assert _cli(argv) == 0
+@pytest.mark.parametrize(("sigma", "n_context"), [("6", 2 * 14), ("none", 14)])
+def test_layer_2_reads_the_psm_pose_or_the_maps_alone(tmp_path, sigma, n_context):
+    argv = ["train-2d", "--small", "--no-eval", "--set", f"context_pose_sigma={sigma}"]
+    assert _cli([*argv, "--out", str(tmp_path)]) == 0
     est = PoseEstimator2D.load(tmp_path)
-    assert est.params.context_pose_sigma == 6.0
-    assert est.layers[1].n_channels == 12 + 2 * 14  # image, layer-1 maps, pose heatmaps
+    assert est.params.context_pose_sigma == (None if sigma == "none" else float(sigma))
+    assert est.layers[1].n_channels == 12 + n_context  # image, layer-1 maps (pose heatmaps)
     rng = np.random.default_rng(1)
     images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 160, 3))]
     with intra_op_threads(1):  # one padded batch

@@ -38,6 +38,9 @@ SMALL = {
 }
 
 
+INFERENCE_OVERRIDE = "override an EstimatorParams field of the model at inference (e.g. n_scales=4)"
+
+
 def register(commands, evals, benches) -> None:
     p = commands.add_parser("train-2d", help="train the 2D pose model (forest cascade + PSM)")
     p.add_argument("--out", type=Path, default=DEFAULT_MODEL)
@@ -56,14 +59,7 @@ def register(commands, evals, benches) -> None:
         action="store_true",
         help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
     )
-    p.add_argument(
-        "--context-pose-sigma",
-        type=float,
-        default=None,
-        metavar="PX",
-        help="layer 2 also reads the PSM's pose on layer 1's maps, as heatmaps of this sigma "
-        "(EstimatorParams.context_pose_sigma; 6 px measured at small scale, docs/RESULTS.md)",
-    )
+    _set_option(p, "an EstimatorParams field to train with (e.g. context_pose_sigma=none)")
     p.set_defaults(func=cmd_train)
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
@@ -82,25 +78,19 @@ def register(commands, evals, benches) -> None:
     e.add_argument(
         "--write-manifest", action="store_true", help="record the metrics in the model manifest"
     )
-    _set_option(e)
+    _set_option(e, INFERENCE_OVERRIDE)
     e.set_defaults(func=cmd_eval_lsp)
 
     b = benches.add_parser("2d", help="images/s of the 2D stage, time per step")
     b.add_argument("--model", type=Path, default=DEFAULT_MODEL)
     b.add_argument("--threads", type=int, default=1)
     b.add_argument("--repeats", type=int, default=3)
-    _set_option(b)
+    _set_option(b, INFERENCE_OVERRIDE)
     b.set_defaults(func=cmd_bench)
 
 
-def _set_option(parser) -> None:
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="override an EstimatorParams field of the model at inference (e.g. n_scales=4)",
-    )
+def _set_option(parser, text: str) -> None:
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=text)
 
 
 def load_estimator(args) -> PoseEstimator2D:
@@ -114,9 +104,8 @@ def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
-    params = EstimatorParams(
-        observer_labels=args.observer_labels, context_pose_sigma=args.context_pose_sigma
-    )
+    overrides = field_overrides(EstimatorParams, args.set)
+    params = EstimatorParams(**{"observer_labels": args.observer_labels, **overrides})
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
     manifest = train(cfg, params, args.out, evaluate=evaluate)
     print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))

@@ -63,8 +63,9 @@ class EstimatorParams:
     context_blur: int = 1  # box radius (cells) on layer-1 maps before layer 2 reads them
     # Whether a context layer also reads the PSM's MAP pose on the layer before's maps, as one
     # Gaussian heatmap per joint of this sigma (px at the working scale; None: the maps alone).
-    # Fixed by training (layer_context). Small cascades on the held-out images: 42.7 % against
-    # 40.2 % without (docs/RESULTS.md, what to do next).
+    # Fixed by training (layer_context). At 6 px: 45.6 % against 44.0 % on the held-out images,
+    # 41.4 % against 40.4 % on LSP test, for 1.6-1.9x the 2D stage's time; off in the bundled
+    # model (docs/RESULTS.md, its section).
     context_pose_sigma: float | None = None
     unary_blur: int = 2  # box radius (cells) on the final maps before the log
     # The PSM sees unary_weight * unaries (relative to the binaries). On the held-out images,
