@@ -40,7 +40,7 @@ from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.threads import map_on_threads, split_rows
 
-STEPS_2D = ("features", "traversal", "psm")  # the steps of Estimate2D.timings, s
+STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from ds3d.image2d.estimator import (
 )
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.features import box_mean, image_channels, rgb_to_lab
+from ds3d.image2d.jointnet import JointNet
 from ds3d.image2d.psm import fit_pairwise_mixtures
 from ds3d.image2d.train import faces_camera, observer_centric
 from ds3d.paths import MODELS_DIR, data_root, project_relative
@@ -108,7 +109,19 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert est.layers[1].n_channels == 12 + 14  # the context layer reads layer-1 maps
     assert est.mixtures.n_components == 3
     assert not est.params.observer_labels
-    assert isinstance(est.facing, FacingNet)  # ds3d.image2d.facing
+    # The joint network settles left and right: no facing CNN is trained beside it.
+    assert isinstance(est.jointnet, JointNet) and est.facing is None
+    assert manifest["train_seconds"]["jointnet"] > 0
+
+
+@needs_data
+def test_without_a_joint_network_the_facing_cnn_is_trained(tmp_path, monkeypatch):
+    monkeypatch.setitem(commands.SMALL, "jointnet_epochs", 0)
+    assert _cli(["train-2d", "--small", "--no-eval", "--out", str(tmp_path)]) == 0
+    est = PoseEstimator2D.load(tmp_path)
+    assert isinstance(est.facing, FacingNet) and est.jointnet is None
+    res = est.estimate([np.random.default_rng(2).integers(0, 256, (150, 100, 3), dtype=np.uint8)])
+    assert res.timings["jointnet"] == 0 and 0 <= float(res.facing_camera[0]) <= 1
 
 
 @needs_data
@@ -122,7 +135,7 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
     assert report["overrides"] == ["n_scales=2"]
     assert report["model"] == str(small_model)  # outside the project: as given
     assert project_relative(MODELS_DIR / "image2d") == "models/image2d"  # same on any checkout
-    for name in ("psm", "forest_argmax"):
+    for name in ("psm", "unary_argmax"):
         assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
     overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "select_stride=none"]
     assert field_overrides(EstimatorParams, overrides) == {
@@ -145,7 +158,7 @@ def test_observer_centric_model_trains_and_decides_facing(tmp_path):
     argv = ["train-2d", "--small", "--no-eval", "--observer-labels", "--out", str(tmp_path)]
     assert _cli(argv) == 0
     est = PoseEstimator2D.load(tmp_path)
-    assert est.params.observer_labels and isinstance(est.facing, FacingNet)
+    assert est.params.observer_labels and isinstance(est.jointnet, JointNet)
     image = np.random.default_rng(2).integers(0, 256, (150, 100, 3), dtype=np.uint8)
     res = est.estimate([image, image[:, ::-1].copy()])
     assert res.facing_camera.shape == (2,)
@@ -203,7 +216,7 @@ def test_estimate_batches_of_mixed_images_and_boxes(small_model):
     # each joint's score is its own unary at some cell (not the PSM's weighted unary)
     at_a_cell = torch.isclose(res.unaries.flatten(2), res.joint_scores[..., None]).any(-1)
     assert at_a_cell.all()
-    assert set(res.timings) == {"features", "traversal", "psm", "total"}
+    assert set(res.timings) == {"features", "traversal", "jointnet", "psm", "total"}
     # each image alone gives the same pose and unaries as in the batch (padding does not leak,
     # not even into the cells at an image's right and bottom edges)
     for i in range(2):
@@ -228,7 +241,7 @@ def test_threads_split_the_batch_without_changing_any_result(small_model, thread
         assert torch.get_num_threads() == threads  # the caller's setting is left alone
     for name in ("joints_2d", "joint_scores", "score", "unaries", "map_to_image", "scale"):
         torch.testing.assert_close(getattr(split, name), getattr(one, name), rtol=0, atol=0)
-    assert set(split.timings) == {"features", "traversal", "psm", "total"}
+    assert set(split.timings) == {"features", "traversal", "jointnet", "psm", "total"}
 
 
 def test_traversal_groups_partition_the_batch_by_shape_within_the_budget():
@@ -299,7 +312,8 @@ def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(
 @needs_data
 def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
     est = PoseEstimator2D.load(small_model)
-    est.params = replace(est.params, flip_test=True)
+    # The flip test is the cascade's: the joint network's maps are not mirrored, so leave it out.
+    est.params = replace(est.params, flip_test=True, jointnet_weight=0.0)
     # 135 px high: the base scale is 1, so the cascade sees the image as it is; (91 - 1) % 3 == 0:
     # the grid of the mirror image is the image's own, mirrored.
     image = np.random.default_rng(2).integers(0, 256, (135, 91, 3), dtype=np.uint8)

@@ -27,12 +27,15 @@ class PoseAnnotations:
     """2D annotations of a set of images.
 
     image_paths: N paths; joints: (N, 14, 2) float32, 0-based pixels;
-    visible: (N, 14) bool, True where the joint is annotated as visible.
+    visible: (N, 14) bool, True where the joint is annotated as visible;
+    located: (N, 14) bool, True where its position is annotated, visible or not (LSP places
+    occluded joints, LSPet does not).
     """
 
     image_paths: tuple[Path, ...]
     joints: np.ndarray
     visible: np.ndarray
+    located: np.ndarray
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -40,7 +43,10 @@ class PoseAnnotations:
     def subset(self, indices) -> PoseAnnotations:
         idx = np.asarray(list(indices), dtype=np.int64)
         return PoseAnnotations(
-            tuple(self.image_paths[i] for i in idx), self.joints[idx], self.visible[idx]
+            tuple(self.image_paths[i] for i in idx),
+            self.joints[idx],
+            self.visible[idx],
+            self.located[idx],
         )
 
     def concat(self, other: PoseAnnotations) -> PoseAnnotations:
@@ -48,6 +54,7 @@ class PoseAnnotations:
             self.image_paths + other.image_paths,
             np.concatenate([self.joints, other.joints]),
             np.concatenate([self.visible, other.visible]),
+            np.concatenate([self.located, other.located]),
         )
 
 
@@ -75,6 +82,7 @@ def load_lsp(root: Path | None = None, split: str = "all") -> PoseAnnotations:
         tuple(root / "images" / f"im{i + 1:04d}.jpg" for i in range(2000)),
         (arr[..., :2] - 1.0).astype(np.float32),
         arr[..., 2] == 0,
+        np.ones(arr.shape[:2], dtype=bool),
     )
     ranges = {"train": LSP_TRAIN, "test": LSP_TEST, "all": range(2000)}
     if split not in ranges:
@@ -96,5 +104,6 @@ def load_lspet(root: Path | None = None) -> PoseAnnotations:
     return PoseAnnotations(
         tuple(root / "images" / f"im{i + 1:05d}.jpg" for i in range(n)),
         (arr[..., :2] - 1.0).astype(np.float32),
+        arr[..., 2] == 1,
         arr[..., 2] == 1,
     )

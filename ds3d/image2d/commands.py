@@ -17,7 +17,14 @@ from ds3d.cli import field_overrides, write_report
 from ds3d.data.lsp import PoseAnnotations, load_lsp
 from ds3d.evaluation.metrics import pck, pixel_error
 from ds3d.image2d.estimator import Estimate2D, EstimatorParams, PoseEstimator2D, read_manifest
-from ds3d.image2d.train import TrainConfig, train, training_annotations, write_manifest
+from ds3d.image2d.train import (
+    NET_FILES,
+    TrainConfig,
+    fit_jointnet,
+    train,
+    training_annotations,
+    write_manifest,
+)
 from ds3d.image_io import read_image
 from ds3d.paths import MODELS_DIR, data_root, project_relative
 from ds3d.skeleton import JOINT_NAMES
@@ -35,6 +42,7 @@ SMALL = {
     "min_samples_leaf": 5,
     "psm_iterations": 10,
     "facing_epochs": 1,
+    "jointnet_epochs": 1,
 }
 
 
@@ -61,6 +69,14 @@ def register(commands, evals, benches) -> None:
     )
     _set_option(p, "an EstimatorParams field to train with (e.g. context_pose_sigma=none)")
     p.set_defaults(func=cmd_train)
+
+    j = commands.add_parser(
+        "train-jointnet", help="(re)train only the joint network of a 2D model, in place"
+    )
+    j.add_argument("--model", type=Path, default=DEFAULT_MODEL)
+    j.add_argument("--threads", type=int, default=2)
+    j.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    j.set_defaults(func=cmd_train_jointnet)
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
     e.add_argument("--model", type=Path, default=DEFAULT_MODEL)
@@ -112,13 +128,38 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_train_jointnet(args) -> int:
+    """Train the joint network on the training images of the model's own manifest (its seed,
+    held-out count and image cap) and add it to the model: what `train-2d` does beside the
+    forests, on --threads threads instead of one."""
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    manifest = read_manifest(args.model)
+    saved = manifest["train_config"]
+    cfg = TrainConfig(**{**saved, "trees": tuple(saved["trees"])})
+    params = EstimatorParams(**manifest["params"])
+    t0 = time.perf_counter()
+    state = fit_jointnet(training_annotations(cfg)[0], params, cfg)
+    torch.save(state, args.model / NET_FILES["jointnet"])
+    manifest["jointnet"] = NET_FILES["jointnet"]
+    manifest["train_config"] = dataclasses.asdict(cfg)
+    manifest["train_seconds"]["jointnet"] = round(time.perf_counter() - t0, 1)
+    write_manifest(args.model, manifest)
+    if not args.no_eval:
+        manifest.setdefault("metrics", {})["validation"] = evaluate_validation(args.model, cfg)
+        write_manifest(args.model, manifest)
+    print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
+    return 0
+
+
 def evaluate_validation(model_dir: Path, cfg: TrainConfig) -> dict:
     _, val = training_annotations(cfg)
     return evaluate(PoseEstimator2D.load(model_dir), val)
 
 
 def argmax_joints(res: Estimate2D) -> torch.Tensor:
-    """Forest alone: per joint, the best cell of the returned unaries. (B, 14, 2) px."""
+    """No PSM: per joint, the best cell of the returned unaries (the forests', plus the joint
+    network's where the model has one). (B, 14, 2) px."""
     b, j, _, w = res.unaries.shape
     best = res.unaries.reshape(b, j, -1).argmax(-1)
     uv1 = torch.stack([best % w, best // w, torch.ones_like(best)], -1).float()
@@ -128,8 +169,8 @@ def argmax_joints(res: Estimate2D) -> torch.Tensor:
 def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dict:
     """PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and mean, and mean
     pixel error, over all 14 joints of every image (LSP's protocol, occluded joints included),
-    for the full model (pyramid + PSM) and for the forest alone: the argmax of each joint's
-    unary map at the scale the PSM chose (and with its left/right decision)."""
+    for the full model (pyramid + PSM) and for the unaries alone (argmax_joints: the argmax of
+    each joint's unary map at the scale the PSM chose, with its left/right decision)."""
     preds, argmax = [], []
     t0 = time.perf_counter()
     for i in range(0, len(ann), batch):
@@ -140,7 +181,7 @@ def evaluate(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dic
     seconds = time.perf_counter() - t0
     gt = torch.from_numpy(ann.joints)
     out = {"n_images": len(ann), "seconds": round(seconds, 1)}
-    for name, pred in (("psm", torch.cat(preds)), ("forest_argmax", torch.cat(argmax))):
+    for name, pred in (("psm", torch.cat(preds)), ("unary_argmax", torch.cat(argmax))):
         per_joint = pck(pred, gt)
         out[name] = {
             "pck@0.2": round(float(per_joint.mean()), 4),
@@ -196,7 +237,7 @@ def cmd_bench(args) -> int:
         images = _bench_images(size, 16)
         for batch in (1, 16):
             est.estimate(images[:batch])  # warm-up
-            steps = {"features": 0.0, "traversal": 0.0, "psm": 0.0, "total": 0.0}
+            steps = {"features": 0.0, "traversal": 0.0, "jointnet": 0.0, "psm": 0.0, "total": 0.0}
             for _ in range(args.repeats):
                 res = est.estimate(images[:batch])
                 for k in steps:

@@ -43,7 +43,8 @@ from ds3d.errors import DataFormatError, InvalidImage
 from ds3d.image2d.facing import FacingNet, faces_camera_probability
 from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
 from ds3d.image2d.forest import Forest, predict_proba
-from ds3d.image2d.psm import PairwiseMixtures, infer, local_centroid
+from ds3d.image2d.jointnet import JointNet, logits_on_grid, spatial_softmax
+from ds3d.image2d.psm import PairwiseMixtures, PsmResult, infer, local_centroid
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import FLIP, NUM_JOINTS
 from ds3d.threads import map_on_threads, split_rows
@@ -93,6 +94,9 @@ class EstimatorParams:
     # it gained only 0.3 / 0.7 points PSM / argmax PCK, with a 0.16 px worse mean error, for
     # 1.6-1.9x the time of the 2D stage (docs/RESULTS.md).
     flip_test: bool = False
+    # Weight of the joint network's unaries (ds3d.image2d.jointnet) against the forests' in the
+    # final pass, for models that have one.
+    jointnet_weight: float = 1.0
 
     def joint_cells(self, unaries: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
         """Where the joints of a PSM MAP go: unaries (B, 14, H, W) log-probabilities the PSM ran
@@ -306,6 +310,13 @@ def load_facing(path: Path) -> FacingNet:
     return net.eval()
 
 
+def load_jointnet(path: Path) -> JointNet:
+    """The joint network's saved state dict (ds3d.image2d.jointnet) -> the network, eval mode."""
+    net = JointNet()
+    net.load_state_dict(torch.load(path, weights_only=True))
+    return net.eval()
+
+
 def read_manifest(model_dir: Path) -> dict:
     path = Path(model_dir) / "manifest.json"
     if not path.is_file():
@@ -366,13 +377,15 @@ class PoseEstimator2D:
         mixtures: PairwiseMixtures,
         params: EstimatorParams,
         facing: FacingNet | None = None,
+        jointnet: JointNet | None = None,
     ):
-        if params.observer_labels and facing is None and layers:
-            raise DataFormatError("observer-centric labels need a facing model")
+        if params.observer_labels and facing is None and jointnet is None and layers:
+            raise DataFormatError("observer-centric labels need a facing model or joint network")
         self.layers = layers
         self.mixtures = mixtures
         self.params = params
         self.facing = facing
+        self.jointnet = jointnet
         self._first_trees: dict[int, list[Forest]] = {}  # coarse-pass layers, per tree count
 
     @classmethod
@@ -386,9 +399,11 @@ class PoseEstimator2D:
             mixtures = PairwiseMixtures.from_state_dict(state)
             facing = manifest.get("facing")
             facing = load_facing(model_dir / facing) if facing else None
+            jointnet = manifest.get("jointnet")
+            jointnet = load_jointnet(model_dir / jointnet) if jointnet else None
         except (KeyError, TypeError, OSError, RuntimeError) as exc:
             raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
-        return cls(layers, mixtures, params, facing)
+        return cls(layers, mixtures, params, facing, jointnet)
 
     def _facing(
         self, channels: torch.Tensor, joints: torch.Tensor, sizes: list[tuple[int, int]]
@@ -399,6 +414,21 @@ class PoseEstimator2D:
         if self.facing is None:
             return torch.ones(channels.shape[0])
         return faces_camera_probability(self.facing, channels[:, :3], joints, sizes)
+
+    def _jointnet_unaries(
+        self, channels: torch.Tensor, sizes: list[tuple[int, int]], stride: int
+    ) -> torch.Tensor:
+        """The joint network's unaries on the grid: channels (b, 12, H, W) zero-padded, sizes b
+        (h, w) -> (b, 14, gh, gw) log(P(joint at the cell) + LOG_EPS), floored as the forests'
+        unaries are; log(LOG_EPS) outside each image. Each image runs alone on its own pixels:
+        past the first batch norm, a padded batch's zeros are no longer zeros, and the network
+        sees about 300 px around each cell."""
+        h, w = channels.shape[-2:]
+        out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), LOG_EPS)
+        for i, (hi, wi) in enumerate(sizes):
+            logits = logits_on_grid(self.jointnet, channels[i : i + 1, :3, :hi, :wi], stride)
+            out[i, :, : logits.shape[2], : logits.shape[3]] = spatial_softmax(logits)[0] + LOG_EPS
+        return out.log()
 
     def scales(self) -> list[float]:
         p = self.params
@@ -453,7 +483,7 @@ class PoseEstimator2D:
         """estimate() of crops on the calling thread, before the left/right decision; sets
         timings of the steps (seconds)."""
         p = self.params
-        timings = {"features": 0.0, "traversal": 0.0, "psm": 0.0}
+        timings = {"features": 0.0, "traversal": 0.0, "jointnet": 0.0, "psm": 0.0}
         if p.select_stride is None or len(scales) == 1:
             best = None
             for rel in scales:
@@ -470,7 +500,7 @@ class PoseEstimator2D:
             layers = self.layers if p.coarse_trees is None else self._coarse_layers(p.coarse_trees)
             score = torch.stack(
                 [
-                    self._one_scale(crops, rel, layers, coarse, timings, facing=False).score
+                    self._one_scale(crops, rel, layers, coarse, timings, final=False).score
                     for rel in scales
                 ]
             )
@@ -498,13 +528,15 @@ class PoseEstimator2D:
         layers: list[Forest],
         p: EstimatorParams,
         timings: dict[str, float],
-        facing: bool = True,
+        final: bool = True,
     ) -> Estimate2D:
         """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
         (whose stride and blur may differ from the model's); adds the seconds of each step to
-        timings. facing: whether to run the facing model (the coarse pass only needs the
-        scores; its facing_camera is then 1). The cascade runs on groups of images of similar
-        shape (_traversal_groups), the PSM on the whole batch at once."""
+        timings. final: whether this pass answers, so runs the joint network (its unaries are
+        added to the cascade's, left_right_hypotheses) or else the facing model (the coarse
+        pass only needs the cascade's scores; its facing_camera is then 1). The cascade runs on
+        groups of images of similar shape (_traversal_groups), the PSM on the whole batch at
+        once."""
         t0 = now()
         resized = [resize_image(c.image, c.base * rel) for c in crops]
         sizes = [r.shape[:2] for r in resized]
@@ -520,14 +552,30 @@ class PoseEstimator2D:
         unaries = torch.empty(len(crops), NUM_JOINTS, gh, gw)
         for rows, _, u in parts:
             unaries[rows] = _pad_maps(u, gh, gw)
-        res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
-        working = p.joint_cells(unaries, res.cells) * p.stride  # (B, 14, 2) px, working scale
         faces = torch.ones(len(crops))
-        if facing:
+        if self.jointnet is None or p.jointnet_weight == 0 or not final:
+            res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
+            res = replace(res, joint_scores=res.joint_scores / p.unary_weight)  # log-probs
+            working = p.joint_cells(unaries, res.cells) * p.stride  # (B, 14, 2) px, working
+            if final:
+                for rows, channels, _ in parts:
+                    faces[rows] = self._facing(
+                        channels, working[rows], [sizes[i] for i in rows.tolist()]
+                    )
+        else:  # the joint network's maps settle left and right (left_right_hypotheses)
+            t2 = now()
+            net = torch.empty_like(unaries)
             for rows, channels, _ in parts:
-                faces[rows] = self._facing(
-                    channels, working[rows], [sizes[i] for i in rows.tolist()]
+                net[rows] = _pad_maps(
+                    self._jointnet_unaries(channels, [sizes[i] for i in rows.tolist()], p.stride),
+                    gh,
+                    gw,
                 )
+            timings["jointnet"] += now() - t2
+            t1 += now() - t2
+            unaries, res, faces = left_right_hypotheses(unaries, net, self.mixtures, p)
+            # The centroid sharpens the sum of the two, as the PSM weighs them.
+            working = p.joint_cells(unaries * (1 + p.jointnet_weight), res.cells) * p.stride
         timings["psm"] += now() - t1
         fac = torch.tensor(
             [
@@ -544,13 +592,49 @@ class PoseEstimator2D:
         affine[:, :, 2] = 0.5 / fac - 0.5 + off
         return Estimate2D(
             joints,
-            res.joint_scores.float() / p.unary_weight,  # the PSM ran on weighted unaries
+            res.joint_scores.float(),
             res.score.float(),
             unaries,
             affine,
             fac.mean(1),
             faces,
         )
+
+
+def left_right_hypotheses(
+    forest: torch.Tensor, net: torch.Tensor, mixtures: PairwiseMixtures, p: EstimatorParams
+) -> tuple[torch.Tensor, PsmResult, torch.Tensor]:
+    """The PSM on the forests' unaries plus jointnet_weight times the joint network's, with the
+    forests' maps taken as they are and with their left and right swapped: the forests label
+    the limb on the image's left "right" (as if everyone faced the camera), the network labels
+    the person's own, so the better score of the two says whether the person faces the camera.
+
+    forest, net: (B, 14, H, W) log-probability unaries -> (unaries (B, 14, H, W), the PSM's
+    result, (B,) P(faces the camera)): the chosen labelling's unaries as a weighted mean,
+    (forest + w net) / (1 + w), so that they stay log-probabilities floored at log(LOG_EPS)
+    like the forests' (the PSM weighs them by unary_weight * (1 + w): it sees the sum), and
+    its MAP pose, both in the forests' labelling (so that _person_centric swaps them to the
+    person's own where P < 0.5); P is the sigmoid of the score difference of the two
+    labellings."""
+    b, flip, w = len(forest), list(FLIP), p.jointnet_weight
+    both = (torch.cat([forest, forest[:, flip]]) + w * net.repeat(2, 1, 1, 1)) / (1 + w)
+    res = infer(both * (p.unary_weight * (1 + w)), mixtures, stride=float(p.stride))
+    facing = torch.sigmoid(res.score[:b] - res.score[b:])
+    away = facing < 0.5
+    rows = torch.arange(b) + b * away.long()
+
+    def forest_labels(t: torch.Tensor) -> torch.Tensor:
+        """Rows of the chosen labelling, joints back in the forests' order."""
+        t = t[rows]
+        return torch.where(away.view(-1, *[1] * (t.ndim - 1)), t[:, flip], t)
+
+    chosen = PsmResult(
+        forest_labels(res.joints_2d),
+        forest_labels(res.cells),
+        res.score[rows],
+        forest_labels(res.joint_scores) / (p.unary_weight * (1 + w)),
+    )
+    return forest_labels(both), chosen, facing
 
 
 def _group_unaries(

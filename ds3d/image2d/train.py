@@ -1,4 +1,6 @@
-"""Training of the 2D stage: a forest cascade, the PSM's pairwise mixtures and a facing model.
+"""Training of the 2D stage: a forest cascade, the PSM's pairwise mixtures and a network, the
+joint network (ds3d.image2d.jointnet, a second unary) or, for a model without one, a facing
+model.
 
 Data: LSP train (im0001-im1000, minus the last `n_val` images, held out for validation) and
 LSPet (10,000). Every image is rescaled so that its person spans `canonical_extent` px
@@ -7,9 +9,11 @@ grows on the first; each later layer grows on its own share, reading the maps of
 before it computed on images they never saw, so that its context features see maps as noisy as
 at test time (stacking without leakage).
 
-Whether the person faces the camera (then person-centric = observer-centric labels) or away
-(then left and right swap) is learnt by a small CNN on the image around the torso
-(ds3d.image2d.facing, train_facing). Labels can be observer-centric
+The joint network (jointnet_windows, ds3d.image2d.jointnet_train) learns person-centric labels
+from the whole person, and so which arm is the right one. Without it, whether the person faces
+the camera (then person-centric = observer-centric labels) or away (then left and right swap)
+is learnt by a small CNN on the image around the torso (ds3d.image2d.facing, train_facing).
+Labels can be observer-centric
 outright (`EstimatorParams.observer_labels`): in every training image the arm whose shoulder is
 on the image's left is called "right", and likewise the leg by its hip, which is what local
 image evidence can tell.
@@ -35,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
+from ds3d.image2d import jointnet_train
 from ds3d.image2d.estimator import (
     EstimatorParams,
     cascade_probs,
@@ -60,6 +65,7 @@ from ds3d.skeleton import FLIP, L_HIP, L_SHOULDER, NECK, NUM_JOINTS, R_HIP, R_SH
 log = logging.getLogger(__name__)
 
 BACKGROUND = NUM_JOINTS  # class id of background pixels
+NET_FILES = {"facing": "facing.pt", "jointnet": "jointnet.pt"}
 
 
 @dataclass
@@ -77,6 +83,8 @@ class TrainConfig:
     pos_radius: float = 5.0  # px: pixels this close to a joint are that joint's positives
     facing_epochs: int = 48  # of the facing CNN (ds3d.image2d.facing)
     facing_lr: float = 3e-3  # its peak learning rate (one cycle)
+    jointnet_epochs: int = 14  # of the joint network (ds3d.image2d.jointnet); 0: facing CNN
+    jointnet_lr: float = 3e-3  # its peak learning rate (one cycle)
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
@@ -259,6 +267,26 @@ def facing_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tenso
     return windows, labels
 
 
+def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tensor, ...]:
+    """The joint network's training data (ds3d.image2d.jointnet_train): per image, a window of
+    WINDOW x WINDOW px of Lab / 100 at the working scale, centred on the box around its located
+    joints; the joints in window px; which are located. Returns ((N, 3, WINDOW, WINDOW) float16,
+    (N, 14, 2) float32 (x, y), (N, 14) bool)."""
+    size = jointnet_train.WINDOW
+    windows = torch.empty(len(ann), 3, size, size, dtype=torch.float16)
+    joints = torch.empty(len(ann), NUM_JOINTS, 2)
+    located = torch.from_numpy(ann.located.copy())
+    for i in range(len(ann)):
+        sample = load_training_image(ann, i, False, params)
+        pts = torch.from_numpy(sample.joints)
+        known = pts[located[i]] if located[i].sum() >= 2 else pts
+        centre = ((known.min(0).values + known.max(0).values) / 2)[None]
+        lab = lab_channels(torch.from_numpy(sample.image)[None])
+        windows[i] = crop(lab, centre, size=size)[0].half()
+        joints[i] = pts - centre + (size - 1) / 2
+    return windows, joints, located
+
+
 def train_facing(windows: Tensor, labels: Tensor, cfg: TrainConfig) -> FacingNet:
     """The facing model (ds3d.image2d.facing) trained on facing_windows: AdamW, a one-cycle
     learning rate peaking at `facing_lr`, `facing_epochs` epochs of batches of FACING_BATCH;
@@ -380,21 +408,33 @@ def _grow_cascade(
     return layers, timings
 
 
-def train_facing_on_one_thread(
-    ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig, log_level: int
+def fit_facing(ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig) -> dict:
+    """The facing CNN's state dict, from facing_windows + train_facing."""
+    return train_facing(*facing_windows(ann, params), cfg).state_dict()
+
+
+def fit_jointnet(ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig) -> dict:
+    """The joint network's state dict, from jointnet_windows + jointnet_train.train_jointnet."""
+    windows = jointnet_windows(ann, params)
+    net = jointnet_train.train_jointnet(*windows, cfg.jointnet_epochs, cfg.jointnet_lr, cfg.seed)
+    return net.state_dict()
+
+
+def fit_on_one_thread(
+    fit, ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig, log_level: int
 ) -> tuple[dict[str, Tensor], float]:
-    """facing_windows + train_facing on one torch thread (train runs it in a worker process
+    """fit_facing or fit_jointnet on one torch thread (train runs each in a worker process
     beside the forests): the state dict and the seconds it took. One thread, because the
     result depends on the thread count (the order in which gradients are summed)."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    net = train_facing(*facing_windows(ann, params), cfg)
-    return net.state_dict(), time.perf_counter() - t0
+    return fit(ann, params, cfg), time.perf_counter() - t0
 
 
 def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=None) -> dict:
-    """Train the cascade, the facing CNN and the PSM; write them with manifest.json to out_dir.
+    """Train the cascade, the facing CNN, the joint network and the PSM; write them with
+    manifest.json to out_dir.
 
     evaluate: None or a callable(out_dir) -> dict of metrics, stored in the manifest.
     Returns the manifest dict.
@@ -413,22 +453,21 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     t0 = time.perf_counter()
     mixtures = fit_psm(train_ann, cfg, params)  # first: the cascade's contexts may run the PSM
     timings = {"psm": time.perf_counter() - t0}
-    # The facing CNN needs nothing from the forests: it trains beside them in a process of its
-    # own on one thread (scikit-learn grows a tree on one core), so the whole training takes
-    # about as long as the forests alone, and the CNN is the same whatever --threads says.
+    # The network needs nothing from the forests: it trains beside them in a process of its own
+    # on one thread (scikit-learn grows a tree on one core), so that it is the same whatever
+    # --threads says. The joint network settles left and right itself
+    # (estimator.left_right_hypotheses); the facing CNN serves models without one.
+    name, fit = ("jointnet", fit_jointnet) if cfg.jointnet_epochs else ("facing", fit_facing)
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=spawn) as pool:
-        facing = pool.submit(
-            train_facing_on_one_thread, train_ann, params, cfg, log.getEffectiveLevel()
-        )
+        net = pool.submit(fit_on_one_thread, fit, train_ann, params, cfg, log.getEffectiveLevel())
         layers, layer_timings = _grow_cascade(train_ann, items, cfg, params, mixtures, rng)
-        facing_state, timings["facing"] = facing.result()
+        state, timings[name] = net.result()
     timings.update(layer_timings)
     layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
-    for forest, name in zip(layers, layer_files, strict=True):
-        save_forest(forest, out_dir / name)
-    facing_file = "facing.pt"
-    torch.save(facing_state, out_dir / facing_file)
+    for forest, layer_file in zip(layers, layer_files, strict=True):
+        save_forest(forest, out_dir / layer_file)
+    torch.save(state, out_dir / NET_FILES[name])
     torch.save(mixtures.state_dict(), out_dir / "psm.pt")
     timings["total"] = time.perf_counter() - t0
     manifest = {
@@ -445,7 +484,8 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         "params": asdict(params),
         "layers": layer_files,
         "psm": "psm.pt",
-        "facing": facing_file,
+        "facing": NET_FILES["facing"] if name == "facing" else None,
+        "jointnet": NET_FILES["jointnet"] if name == "jointnet" else None,
         "train_seconds": {k: round(v, 1) for k, v in timings.items()},
         "metrics": {},
     }

@@ -1,0 +1,114 @@
+"""Training of the joint network (ds3d.image2d.jointnet) on the 2D stage's training images.
+
+The data is one WINDOW x WINDOW window of Lab channels per image at the working scale, around
+the person (train.jointnet_windows). Every draw cuts a CROP x CROP view from it, rotated
+(+-ROTATION degrees), zoomed (x ZOOM[0]-ZOOM[1]: the pyramid's residual scale error and more),
+shifted, mirrored at random
+(left and right labels swapped with it) and jittered in lightness and colour. The target of a
+joint is a Gaussian of SIGMA output cells around it, normalised over the cells; the loss is the
+cross-entropy between it and the log-softmax of the joint's map, over the joints whose position
+is annotated (PoseAnnotations.located) and that lie in the view.
+
+bfloat16 autocast on the CPU: twice the speed of float32 on this machine's cores
+(docs/RESULTS.md). Seeded by seed * 1000 + 11 (torch's generator).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ds3d.image2d.jointnet import STRIDE, JointNet
+from ds3d.skeleton import FLIP
+
+log = logging.getLogger(__name__)
+
+WINDOW = 176  # px at the working scale, kept per training image
+CROP = 128  # px, the network's training input
+ROTATION = 30.0  # degrees
+ZOOM = (0.85, 1.3)  # window px per input px
+SHIFT = 12.0  # px
+SIGMA = 1.0  # output cells
+BATCH = 64
+
+
+def augment(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Random views of a batch: windows (b, 3, WINDOW, WINDOW), joints (b, 14, 2) window px,
+    located (b, 14) -> (b, 3, CROP, CROP) float32, joints (b, 14, 2) in view px, (b, 14) bool
+    of the located joints that lie in the view."""
+    b = len(windows)
+    angle = torch.empty(b).uniform_(-ROTATION, ROTATION) * (math.pi / 180)
+    zoom = torch.empty(b).uniform_(*ZOOM)
+    shift = torch.empty(b, 2).uniform_(-SHIFT, SHIFT)
+    flip = torch.rand(b) < 0.5
+    # View px v (centred) reads window px  c_w + shift + zoom * R(angle) * (mirror) v.
+    cos, sin = torch.cos(angle) * zoom, torch.sin(angle) * zoom
+    sx = torch.where(flip, -1.0, 1.0)
+    a = torch.stack([torch.stack([cos * sx, -sin], -1), torch.stack([sin * sx, cos], -1)], 1)
+    half_w, half_c = (WINDOW - 1) / 2, (CROP - 1) / 2
+    # affine_grid works in [-1, 1] units with align_corners=True: scale by the two halves.
+    theta = torch.cat([a * (half_c / half_w), (shift / half_w)[:, :, None]], 2)
+    grid = F.affine_grid(theta, [b, 3, CROP, CROP], align_corners=True)
+    views = F.grid_sample(windows.float(), grid, mode="bilinear", align_corners=True)
+    views[:, 0] += torch.empty(b, 1, 1).uniform_(-0.1, 0.1)  # lightness
+    views[:, 1:] = views[:, 1:] * torch.empty(b, 1, 1, 1).uniform_(0.7, 1.3)
+    views[:, 1:] += torch.empty(b, 2, 1, 1).uniform_(-0.05, 0.05)
+    # Joints: v = A^-1 (w - c_w - shift).
+    rel = joints - half_w - shift[:, None, :]
+    out = torch.linalg.solve(a[:, None], rel[..., None])[..., 0] + half_c
+    order = torch.tensor(FLIP)
+    out = torch.where(flip[:, None, None], out[:, order], out)
+    known = torch.where(flip[:, None], located[:, order], located)
+    inside = ((out >= 0) & (out <= CROP - 1)).all(-1)
+    return views, out, known & inside
+
+
+def soft_targets(joints: Tensor, size: int) -> Tensor:
+    """Gaussian targets on a size x size output grid: joints (b, 14, 2) view px ->
+    (b, 14, size * size), each row summing to 1 (cell (u, v) is view px (STRIDE u, STRIDE v));
+    all zero for a joint too far off the grid (its Gaussian underflows), never NaN."""
+    cells = torch.arange(size, dtype=torch.float32)
+    g = joints / STRIDE
+    dx = cells[None, None, None, :] - g[..., 0, None, None]
+    dy = cells[None, None, :, None] - g[..., 1, None, None]
+    t = torch.exp(-0.5 * (dx * dx + dy * dy) / SIGMA**2).reshape(*joints.shape[:2], -1)
+    return t / t.sum(-1, keepdim=True).clamp_min(1e-30)
+
+
+def jointnet_loss(logits: Tensor, joints: Tensor, mask: Tensor) -> Tensor:
+    """Mean cross-entropy of the maps' spatial log-softmax against soft_targets, over the masked
+    joints. logits: (b, 14, s, s); joints: (b, 14, 2) view px; mask: (b, 14) bool."""
+    logp = torch.log_softmax(logits.float().flatten(2), -1)
+    ce = -(soft_targets(joints, logits.shape[-1]) * logp).sum(-1)  # (b, 14)
+    return (ce * mask).sum() / mask.sum().clamp_min(1)
+
+
+def train_jointnet(
+    windows: Tensor, joints: Tensor, located: Tensor, epochs: int, lr: float, seed: int
+) -> JointNet:
+    """JointNet trained on jointnet_windows: AdamW, a one-cycle learning rate peaking at lr,
+    `epochs` epochs of batches of BATCH random views (augment)."""
+    torch.manual_seed(seed * 1000 + 11)
+    net = JointNet().to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
+    steps = epochs * -(-len(windows) // BATCH)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps)
+    net.train()
+    for epoch in range(epochs):
+        total = 0.0
+        for rows in torch.randperm(len(windows)).split(BATCH):
+            views, pts, mask = augment(windows[rows], joints[rows], located[rows])
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                logits = net(views.contiguous(memory_format=torch.channels_last))
+            loss = jointnet_loss(logits, pts, mask)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            schedule.step()
+            total += float(loss.detach()) * len(rows)
+        log.info("jointnet epoch %d: loss %.4f", epoch + 1, total / len(windows))
+    return net.eval()
