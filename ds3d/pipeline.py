@@ -86,8 +86,8 @@ class PipelineResult:
         root at the hip midpoint.
     confidence: (B, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
     facing_camera: (B,) float32 in [0, 1], the 2D stage's probability that the person faces the
-        camera; below 0.5 its left and right were swapped (ds3d.image2d.facing), so a value
-        near 0.5 says the left/right labels are a guess.
+        camera; below 0.5 its left and right were swapped (Estimate2D.facing_camera), so a
+        value near 0.5 says the left/right labels are a guess.
     joint_set: B names, the chosen set s^.
     psm_energy: (B, T) float32, the negative MAP log-posterior of x^ after each iteration
         (non-increasing in t with selection "posterior", which keeps the better pose; with

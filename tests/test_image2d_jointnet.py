@@ -8,7 +8,13 @@ from torch import nn
 
 from ds3d.image2d import jointnet_train
 from ds3d.image2d.estimator import EstimatorParams, left_right_hypotheses
-from ds3d.image2d.jointnet import STRIDE, JointNet, logits_on_grid, spatial_softmax
+from ds3d.image2d.jointnet import (
+    MARGIN,
+    STRIDE,
+    JointNet,
+    logits_on_grid,
+    spatial_softmax,
+)
 from ds3d.image2d.jointnet_train import WINDOW, augment, jointnet_loss, soft_targets
 from ds3d.image2d.psm import fit_pairwise_mixtures
 from ds3d.skeleton import FLIP, NUM_JOINTS
@@ -66,7 +72,8 @@ def test_loss_counts_only_masked_joints_and_learns():
 
 
 class _Ramp(nn.Module):
-    """Output cell (u, v) of channel c holds u + 100 v + c: where a grid cell reads from."""
+    """Output cell (u, v) of channel c holds u + 100 v + c: where a grid cell reads from (u, v
+    counted from the margin's corner)."""
 
     def forward(self, lab):
         b, _, h, w = lab.shape
@@ -82,8 +89,11 @@ def test_grid_cells_read_the_output_cell_under_their_pixel():
     grid = logits_on_grid(_Ramp(), lab, stride=3)
     assert grid.shape == (1, NUM_JOINTS, 16, 14)
     i, j = torch.meshgrid(torch.arange(16.0), torch.arange(14.0), indexing="ij")
-    # Pixel (3 i, 3 j) is output cell (3 i / 4, 3 j / 4); past the last cell (12 x 10), the last.
-    want = (3 * j / STRIDE).clamp(max=9) + 100 * (3 * i / STRIDE).clamp(max=11)
+    # Pixel (3 i, 3 j) is output cell ((3 i + MARGIN) / 4, (3 j + MARGIN) / 4) of the image in
+    # its margin (48 + 2 MARGIN px high, 40 + 2 MARGIN wide).
+    last_u, last_v = (40 + 2 * MARGIN) // STRIDE - 1, (48 + 2 * MARGIN) // STRIDE - 1
+    want = ((3 * j + MARGIN) / STRIDE).clamp(max=last_u)
+    want = want + 100 * ((3 * i + MARGIN) / STRIDE).clamp(max=last_v)
     torch.testing.assert_close(grid[0, 2], want + 2)
 
 

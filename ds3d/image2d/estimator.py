@@ -13,17 +13,24 @@ run at the full `stride` with every tree.
 Cascade. Layer 1 classifies every `stride`-th pixel into 14 joints + background from image
 channels. Each later layer (auto-context) splits on the image channels AND on the previous
 layer's joint probability maps, read at offsets, which lets it use where the other joints
-probably are. Unaries are log(box-blurred probabilities of the last layer). The PSM's MAP lies
-on the grid of evaluated pixels; each of its joints then moves to the centroid of its unary
-map around it (psm.local_centroid, EstimatorParams.joint_cells).
+probably are. Unaries are log(box-blurred probabilities of the last layer).
+
+Joint network. A model may also have a small CNN that scores each joint's position from the
+whole person (ds3d.image2d.jointnet). In the final pass its log-probabilities join the
+cascade's (weighted by `jointnet_weight`, left_right_hypotheses); the coarse pass that picks the
+scale reads the cascade alone. The PSM's MAP lies on the grid of evaluated pixels; each of its
+joints then moves to the centroid of its unary map around it (psm.local_centroid,
+EstimatorParams.joint_cells).
 
 Left and right. The cascade labels the limb on the image's left "right" in nearly every image,
-as if everyone faced the camera. A small CNN on the image around the PSM's torso
-(ds3d.image2d.facing) says whether the person does; if not, left and right are swapped at the
-end, so results are person-centric like LSP's labels. With `observer_labels` (off in the
-bundled model) the cascade and the PSM are trained on observer-centric labels outright (the arm
-whose shoulder is on the image's left is "right"; see ds3d.image2d.train), and the same facing
-model maps them back.
+as if everyone faced the camera. The joint network, trained on person-centric labels, knows
+better: the PSM runs with the cascade's maps as they are and with left and right swapped, and
+the better score says whether the person faces the camera. Without a joint network, a small
+CNN on the image around the PSM's torso (ds3d.image2d.facing) says it. Either way left and right
+are swapped at the end where the person faces away, so results are person-centric like LSP's
+labels. With `observer_labels` (off in the bundled model) the cascade and the PSM are trained
+on observer-centric labels outright (the arm whose shoulder is on the image's left is "right";
+see ds3d.image2d.train), and the same decision maps them back.
 """
 
 from __future__ import annotations
@@ -69,10 +76,11 @@ class EstimatorParams:
     # model (docs/RESULTS.md, its section).
     context_pose_sigma: float | None = None
     unary_blur: int = 2  # box radius (cells) on the final maps before the log
-    # The PSM sees unary_weight * unaries (relative to the binaries). On the held-out images,
-    # with the local centroid below, 3 / 6 / 8 / 12 / 16 gave 42.9 / 44.0 / 44.0 / 44.0 /
-    # 43.6 % PCK@0.2 (docs/RESULTS.md): 8 is the middle of the plateau.
-    unary_weight: float = 8.0
+    # The PSM sees unary_weight * unaries (relative to the binaries). With the joint network,
+    # 1 / 1.5 / 2 / 3 / 4 / 8 gave 63.7 / 64.4 / 64.5 / 63.3 / 63.1 / 62.4 % PCK@0.2 on the
+    # held-out images (jointnet_weight 1, before the network's margin; docs/RESULTS.md). The
+    # forests alone were best at 8 (42.9 / 44.0 / 44.0 / 44.0 / 43.6 % at 3 / 6 / 8 / 12 / 16).
+    unary_weight: float = 2.0
     # Each joint of the PSM's MAP moves to the centroid of its unary probabilities ^ sharpness
     # within this many cells (psm.local_centroid; None: stays on its cell). On the held-out
     # images, with unary_weight 8: 43.9-44.3 % against 42.1 % without it at weight 4 (the
@@ -95,8 +103,10 @@ class EstimatorParams:
     # 1.6-1.9x the time of the 2D stage (docs/RESULTS.md).
     flip_test: bool = False
     # Weight of the joint network's unaries (ds3d.image2d.jointnet) against the forests' in the
-    # final pass, for models that have one.
-    jointnet_weight: float = 1.0
+    # final pass of a model that has one (left_right_hypotheses; 0: the forests alone, as
+    # without one). On the held-out images, with unary_weight 2: 1 / 1.5 / 2 (at 1.5) gave
+    # 64.8 / 65.6 / 65.6 % PCK@0.2, the network alone about 59 % (docs/RESULTS.md).
+    jointnet_weight: float = 1.5
 
     def joint_cells(self, unaries: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
         """Where the joints of a PSM MAP go: unaries (B, 14, H, W) log-probabilities the PSM ran
@@ -250,9 +260,11 @@ class Estimate2D:
     map_to_image: (B, 2, 3) float32 affine map from unary cell (u = column, v = row, 1) to image
         pixels (x, y): image_xy = map_to_image @ (u, v, 1).
     scale: (B,) float32, the working scale chosen (working px per image px, mean of x and y).
-    facing_camera: (B,) float32, the facing model's probability that the person faces the
-        camera (1 for models without one); below 0.5, left and right were swapped.
-    timings: seconds per step (features, traversal, psm, total).
+    facing_camera: (B,) float32, the probability that the person faces the camera: with a joint
+        network, the sigmoid of the PSM score of the cascade's labelling minus that of the
+        swapped one (left_right_hypotheses); else the facing model's (1 for models with
+        neither); below 0.5, left and right were swapped.
+    timings: seconds per step (features, traversal, jointnet, psm, total).
     """
 
     joints_2d: torch.Tensor
