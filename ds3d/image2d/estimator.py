@@ -557,15 +557,27 @@ class PoseEstimator2D:
             _group_unaries(resized, rows, layers, self.mixtures, p, timings)
             for rows in _traversal_groups(sizes, layers[-1])
         ]
-        t1 = now()
         # Back to the batch's order, padded to one grid (log(LOG_EPS) outside each image).
         gh = max(u.shape[2] for _, _, u in parts)
         gw = max(u.shape[3] for _, _, u in parts)
         unaries = torch.empty(len(crops), NUM_JOINTS, gh, gw)
         for rows, _, u in parts:
             unaries[rows] = _pad_maps(u, gh, gw)
+        with_net = final and self.jointnet is not None and p.jointnet_weight > 0
+        if with_net:
+            t1 = now()
+            net = torch.empty_like(unaries)
+            for rows, channels, _ in parts:
+                maps = self._jointnet_unaries(channels, [sizes[i] for i in rows.tolist()], p.stride)
+                net[rows] = _pad_maps(maps, gh, gw)
+            timings["jointnet"] += now() - t1
+        t1 = now()
         faces = torch.ones(len(crops))
-        if self.jointnet is None or p.jointnet_weight == 0 or not final:
+        if with_net:  # the joint network's maps settle left and right
+            unaries, res, faces = left_right_hypotheses(unaries, net, self.mixtures, p)
+            # The centroid sharpens the sum of the two, as the PSM weighs them.
+            working = p.joint_cells(unaries * (1 + p.jointnet_weight), res.cells) * p.stride
+        else:
             res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
             res = replace(res, joint_scores=res.joint_scores / p.unary_weight)  # log-probs
             working = p.joint_cells(unaries, res.cells) * p.stride  # (B, 14, 2) px, working
@@ -574,20 +586,6 @@ class PoseEstimator2D:
                     faces[rows] = self._facing(
                         channels, working[rows], [sizes[i] for i in rows.tolist()]
                     )
-        else:  # the joint network's maps settle left and right (left_right_hypotheses)
-            t2 = now()
-            net = torch.empty_like(unaries)
-            for rows, channels, _ in parts:
-                net[rows] = _pad_maps(
-                    self._jointnet_unaries(channels, [sizes[i] for i in rows.tolist()], p.stride),
-                    gh,
-                    gw,
-                )
-            timings["jointnet"] += now() - t2
-            t1 += now() - t2
-            unaries, res, faces = left_right_hypotheses(unaries, net, self.mixtures, p)
-            # The centroid sharpens the sum of the two, as the PSM weighs them.
-            working = p.joint_cells(unaries * (1 + p.jointnet_weight), res.cells) * p.stride
         timings["psm"] += now() - t1
         fac = torch.tensor(
             [

@@ -27,6 +27,9 @@ from torch import Tensor, nn
 from ds3d.skeleton import NUM_JOINTS
 
 STRIDE = 4  # input px per output cell
+# bfloat16 autocast on CPUs whose oneDNN computes it (AVX-512 and newer): twice float32's speed
+# on this project's machines; elsewhere it would be emulated, slower than float32.
+CPU_BFLOAT16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 MARGIN = 16  # px of zeros around an image at inference (logits_on_grid); a multiple of STRIDE
 DILATIONS = (1, 2, 4, 8, 1)
 WIDTH = 64
@@ -76,10 +79,11 @@ def logits_on_grid(net: JointNet, lab: Tensor, stride: int) -> Tensor:
     images (64.8 against 62.8 % PCK@0.2 on the held-out images, docs/RESULTS.md). Grid cell
     (i, j) is pixel (stride * i, stride * j), so output cell ((stride * i + MARGIN) / STRIDE,
     (stride * j + MARGIN) / STRIDE): read bilinearly (past the last output cell, the last).
-    bfloat16 on the CPU, as trained: twice as fast as float32 there."""
+    bfloat16 on a CPU that computes it (CPU_BFLOAT16), as trained."""
     height, width = lab.shape[-2:]
     padded = F.pad(lab, (MARGIN, MARGIN, MARGIN, MARGIN))
-    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=lab.is_cpu):
+    bf16 = lab.is_cpu and CPU_BFLOAT16
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         logits = net(padded).float()
     gh, gw = -(-height // stride), -(-width // stride)
     ys = (torch.arange(gh, dtype=torch.float32) * stride + MARGIN) / STRIDE

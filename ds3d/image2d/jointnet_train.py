@@ -9,8 +9,8 @@ joint is a Gaussian of SIGMA output cells around it, normalised over the cells; 
 cross-entropy between it and the log-softmax of the joint's map, over the joints whose position
 is annotated (PoseAnnotations.located) and that lie in the view.
 
-bfloat16 autocast on the CPU: twice the speed of float32 on this machine's cores
-(docs/RESULTS.md). Seeded by seed * 1000 + 11 (torch's generator).
+bfloat16 autocast on a CPU that computes it (jointnet.CPU_BFLOAT16): twice the speed of float32
+on this machine's cores (docs/RESULTS.md). Seeded by seed * 1000 + 11 (torch's generator).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ds3d.image2d.jointnet import STRIDE, JointNet
+from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet
 from ds3d.skeleton import FLIP
 
 log = logging.getLogger(__name__)
@@ -102,7 +102,7 @@ def train_jointnet(
         total = 0.0
         for rows in torch.randperm(len(windows)).split(BATCH):
             views, pts, mask = augment(windows[rows], joints[rows], located[rows])
-            with torch.autocast("cpu", dtype=torch.bfloat16):
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=CPU_BFLOAT16):
                 logits = net(views.contiguous(memory_format=torch.channels_last))
             loss = jointnet_loss(logits, pts, mask)
             opt.zero_grad()
