@@ -6,12 +6,15 @@ PCK@0.2 on LSP test against every growing knob tried (docs/RESULTS.md), and it c
 from right: it reads pixels within 40 px of each one. This network sees the whole person
 (a receptive field of about 300 px at the working scale, where a person spans 100 px) and is
 trained on person-centric labels, so its maps carry which arm is the right one. The PSM sums
-both unaries (EstimatorParams.jointnet_weight); the forests stay the paper's unary.
+both unaries (EstimatorParams.jointnet_weight, estimator.left_right_hypotheses); the forests
+stay the paper's unary. On LSP test: 62.7 % PCK@0.2 with both, 40.4 % with the forests alone
+(docs/RESULTS.md).
 
 Architecture (JointNet): two stride-2 3 x 3 convolutions to a quarter of the resolution, then
 residual blocks of dilated 3 x 3 convolutions (dilations 1, 2, 4, 8, 1), a 1 x 1 convolution to
 14 maps. Output cell (u, v) is centred on input pixel (STRIDE * u, STRIDE * v). Input: Lab / 100
-(features.lab_channels) at the working scale, zero outside the image.
+(features.lab_channels) at the working scale, zero outside the image (and in a MARGIN around
+it at inference, as training windows reach past their images).
 
 Its maps are softmaxed over each image's cells: P(joint at the cell), a distribution over
 positions per joint, as trained (a cross-entropy against a Gaussian around the annotated

@@ -3,8 +3,8 @@
 The data is one WINDOW x WINDOW window of Lab channels per image at the working scale, around
 the person (train.jointnet_windows). Every draw cuts a CROP x CROP view from it, rotated
 (+-ROTATION degrees), zoomed (x ZOOM[0]-ZOOM[1]: the pyramid's residual scale error and more),
-shifted, mirrored at random
-(left and right labels swapped with it) and jittered in lightness and colour. The target of a
+shifted, mirrored at random (left and right labels swapped with it) and jittered in lightness
+and colour. The target of a
 joint is a Gaussian of SIGMA output cells around it, normalised over the cells; the loss is the
 cross-entropy between it and the log-softmax of the joint's map, over the joints whose position
 is annotated (PoseAnnotations.located) and that lie in the view.
