@@ -433,8 +433,8 @@ def fit_on_one_thread(
 
 
 def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=None) -> dict:
-    """Train the cascade, the facing CNN, the joint network and the PSM; write them with
-    manifest.json to out_dir.
+    """Train the cascade, the PSM and one network (the joint network, or the facing CNN where
+    cfg.jointnet_epochs is 0); write them with manifest.json to out_dir.
 
     evaluate: None or a callable(out_dir) -> dict of metrics, stored in the manifest.
     Returns the manifest dict.
