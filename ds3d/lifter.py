@@ -9,18 +9,20 @@
 With no image there are no unaries, so a neighbour's weight (eq:wt) is replaced by the negative
 of its own 2D fit residual E_p under M_s: the neighbours that project best onto the 2D pose count
 most. ds3d.Pipeline passes image-based scores instead.
+
+Each stage is a public method that ds3d.Pipeline composes too: `query` (checked input and its
+camera frame), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours`, `choose_set`,
+`fit_pose`.
 """
 
 from __future__ import annotations
 
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from ds3d.fit.camera import CameraFrame, project, rotation_matrix
+from ds3d.fit.camera import CameraFrame, image_frame, project, rotation_matrix
 from ds3d.fit.energy import projection_energy
 from ds3d.fit.selection import set_energy, top_weighted
 from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
@@ -29,6 +31,7 @@ from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import JOINT_SETS, SET_NAMES, hip_midpoint, joint_set_mask
+from ds3d.timing import stage_timer
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,32 @@ class LifterConfig:
 # 2 iterations: 108-113 ms one call per set against 41-44 ms one call for all at batch 1, 63 / 32
 # at 2, 39-41 / 26-27 at 4, 27 / 25 at 8, 21 / 25 at 16 (a development script, stop 15).
 ONE_FIT_BELOW = 8
+
+
+@dataclass(frozen=True)
+class Query:
+    """A batch of 2D poses as the stages take them: joints_2d (B, 14, 2) px, visible (B, 14)
+    bool, and the projection model's fixed frame (ds3d.fit.camera.image_frame)."""
+
+    joints_2d: torch.Tensor
+    visible: torch.Tensor
+    frame: CameraFrame
+
+    def moved_to(self, joints_2d: torch.Tensor) -> Query:
+        """The same query with other 2D joints and the same frame (the pipeline's iterations:
+        warm-started projections stay in the first frame's coordinates)."""
+        return Query(joints_2d, self.visible, self.frame)
+
+
+@dataclass
+class Neighbours:
+    """What retrieval and the projection fit found: poses (B, S, K, 14, 3) mm, camera-oriented;
+    params (B, S, 6), the projection M_s of each set; residuals (B, S, K), each neighbour's
+    eq:projerr1 energy under it."""
+
+    poses: torch.Tensor
+    params: torch.Tensor
+    residuals: torch.Tensor
 
 
 @dataclass
@@ -115,29 +144,47 @@ class Lifter:
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
         optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose."""
-        x = joints_2d_batch(joints_2d).to(self.device)
-        vis = visibility_batch(visible, len(x)).to(self.device)
-        k = intrinsics_batch(intrinsics, len(x))
-        frame = image_frame(x, vis, None if k is None else k.to(self.device))
+        query = self.query(joints_2d, visible, intrinsics)
         timings: dict[str, float] = {}
-        with torch.no_grad(), _timed(timings, "retrieval", self.device):
-            candidates = self.retrieve(x)
-        with _timed(timings, "projection_fit", self.device):
-            params, residuals = self.fit_projections(candidates, x, vis, frame)
-        with torch.no_grad(), _timed(timings, "selection", self.device):
-            kept, weights, kept_residuals = self.weight_neighbours(candidates, -residuals)
-            energies, best = self.choose_set(kept, weights, kept_residuals, params, x, vis, frame)
-        with _timed(timings, "pose_fit", self.device):
-            pose = self.fit_pose(kept, weights, params, x, vis, frame, best)
-        rows = torch.arange(len(x), device=self.device)
+        found = self.neighbours(query, timings=timings)
+        with torch.no_grad(), stage_timer(timings, "selection", self.device):
+            kept, weights, kept_residuals = self.weight_neighbours(found.poses, -found.residuals)
+            energies, best = self.choose_set(kept, weights, kept_residuals, found.params, query)
+        with stage_timer(timings, "pose_fit", self.device):
+            pose = self.fit_pose(kept, weights, found.params, query, best)
+        rows = torch.arange(len(best), device=self.device)
         return LiftResult(
             joints_3d=pose.detach().cpu(),
             joint_set=[self.config.joint_sets[i] for i in best.tolist()],
             energy=energies[rows, best].cpu(),
             set_energies=energies.cpu(),
-            projection=params[rows, best].cpu(),
+            projection=found.params[rows, best].cpu(),
             timings_ms=timings,
         )
+
+    def query(self, joints_2d, visible=None, intrinsics=None) -> Query:
+        """Checked 2D input on the lifter's device, with its camera frame. Arguments as lift;
+        raises ds3d.errors.InvalidPose."""
+        x = joints_2d_batch(joints_2d).to(self.device)
+        vis = visibility_batch(visible, len(x)).to(self.device)
+        k = intrinsics_batch(intrinsics, len(x))
+        return Query(x, vis, image_frame(x, vis, None if k is None else k.to(self.device)))
+
+    def neighbours(
+        self,
+        query: Query,
+        start: torch.Tensor | None = None,
+        timings: dict[str, float] | None = None,
+    ) -> Neighbours:
+        """Retrieval and projection fit (eq:projerr1): K neighbours per configured set and the
+        projection M_s of each set fitted to them. start: optional (B, S, 6) projections to
+        start the fit from (a previous iteration's). Adds the stages' ms to `timings`."""
+        timings = {} if timings is None else timings
+        with torch.no_grad(), stage_timer(timings, "retrieval", self.device):
+            poses = self.retrieve(query.joints_2d)
+        with stage_timer(timings, "projection_fit", self.device):
+            params, residuals = self.fit_projections(poses, query, start)
+        return Neighbours(poses, params, residuals)
 
     def retrieve(self, joints_2d: torch.Tensor) -> torch.Tensor:
         """K neighbours per configured set, camera-oriented. joints_2d: (B, 14, 2) px.
@@ -146,18 +193,19 @@ class Lifter:
         ids = ids[:, self.set_ids]
         return self.database.candidates(ids.to(self.device))
 
-    def choose_set(self, kept, weights, kept_residuals, params, joints_2d, visible, frame):
+    def choose_set(self, kept, weights, kept_residuals, params, query: Query):
         """s^ by eq:energyS. kept: (B, S, K_w, 14, 3); weights, kept_residuals: (B, S, K_w);
-        params: (B, S, 6); joints_2d: (B, 14, 2); visible: (B, 14). Returns the energies (B, S)
-        and the chosen set (B,) among the usable ones."""
+        params: (B, S, 6). Returns the energies (B, S) and the chosen set (B,) among the usable
+        ones."""
         if self.config.select_on_all_joints:
             kept_residuals = projection_energy(
-                project(kept, params, frame.unsqueeze(1)),
-                joints_2d[:, None],
-                visible[:, None].float(),
+                project(kept, params, query.frame.unsqueeze(1)),
+                query.joints_2d[:, None],
+                query.visible[:, None].float(),
             )
         energies = set_energy(kept, weights, kept_residuals, self.config.omega)
-        return energies, torch.where(self.usable_sets(visible), energies, torch.inf).argmin(-1)
+        usable = self.usable_sets(query.visible)
+        return energies, torch.where(usable, energies, torch.inf).argmin(-1)
 
     def usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
         """(B, S) bool: a set with a hidden joint only counts when every set has one."""
@@ -165,18 +213,18 @@ class Lifter:
         complete = (masks == self.set_masks).all(-1)
         return complete | ~complete.any(-1, keepdim=True)
 
-    def fit_pose(self, kept, weights, params, joints_2d, visible, frame, best) -> torch.Tensor:
+    def fit_pose(self, kept, weights, params, query: Query, best) -> torch.Tensor:
         """eq:energyMin2 on the chosen set `best` (B,) of each pose. kept: (B, S, K_w, 14, 3);
-        weights: (B, S, K_w); params: (B, S, 6); joints_2d: (B, 14, 2); visible: (B, 14).
-        Returns (B, 14, 3) mm, camera-oriented, root at the hip midpoint."""
+        weights: (B, S, K_w); params: (B, S, 6). Returns (B, 14, 3) mm, camera-oriented, root
+        at the hip midpoint."""
         rows = torch.arange(len(best), device=best.device)
         pose = fit_pose(
             kept[rows, best],
             weights[rows, best],
             params[rows, best],
-            joints_2d,
-            self.set_masks[best] * visible.float(),
-            frame,
+            query.joints_2d,
+            self.set_masks[best] * query.visible.float(),
+            query.frame,
             self.config.omega,
             self.config.pca_components,
             self.config.pose_iterations,
@@ -184,13 +232,14 @@ class Lifter:
         oriented = pose @ rotation_matrix(params[rows, best, :3]).transpose(-1, -2)
         return oriented - hip_midpoint(oriented)[:, None]
 
-    def fit_projections(self, candidates, joints_2d, visible, frame, start=None):
-        """eq:projerr1 for every (pose, set). candidates: (B, S, K, 14, 3); joints_2d: (B, 14, 2);
-        visible: (B, 14) bool; start: optional (B, S, 6). Returns params (B, S, 6) and residuals
-        (B, S, K). Below ONE_FIT_BELOW poses, all B * S problems are one L-BFGS call on all 14
-        joints, the set's own masked; from it on, one call per set on its own joints only (a
-        third less work than masking, which pays once the work outweighs the calls' overhead)."""
+    def fit_projections(self, candidates, query: Query, start=None):
+        """eq:projerr1 for every (pose, set). candidates: (B, S, K, 14, 3); start: optional
+        (B, S, 6). Returns params (B, S, 6) and residuals (B, S, K). Below ONE_FIT_BELOW poses,
+        all B * S problems are one L-BFGS call on all 14 joints, the set's own masked; from it
+        on, one call per set on its own joints only (a third less work than masking, which pays
+        once the work outweighs the calls' overhead)."""
         b, n_sets = candidates.shape[:2]
+        joints_2d, visible, frame = query.joints_2d, query.visible, query.frame
         if b < ONE_FIT_BELOW:
             params, residuals = fit_projection(
                 candidates.flatten(0, 1),
@@ -224,21 +273,3 @@ class Lifter:
         index, weights = top_weighted(scores, self.config.weighted_neighbours)
         kept = torch.take_along_dim(candidates, index[..., None, None], dim=2)
         return kept, weights, -torch.take_along_dim(scores, index, dim=2)
-
-
-def image_frame(joints_2d: torch.Tensor, visible: torch.Tensor, intrinsics) -> CameraFrame:
-    """The fixed per-pose frame of the projection model: the visible joints' centroid and RMS
-    spread (px) for weak perspective; intrinsics when given. Leading dim B."""
-    m = visible.float()[..., None]
-    centre = (joints_2d * m).sum(-2) / m.sum(-2)
-    spread = (((joints_2d - centre[:, None]) ** 2 * m).sum((-1, -2)) / m.sum((-1, -2))).sqrt()
-    return CameraFrame(intrinsics, centre, spread.clamp_min(1.0))
-
-
-@contextmanager
-def _timed(timings: dict[str, float], stage: str, device: torch.device):
-    start = time.perf_counter()
-    yield
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    timings[stage] = timings.get(stage, 0.0) + 1000 * (time.perf_counter() - start)

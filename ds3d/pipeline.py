@@ -6,9 +6,9 @@
       projection fit M_s per set (eq:projerr1), warm-started from t - 1 (ds3d.lifter)
       weighting      eq:wt: the unaries summed at each neighbour's projected joints; keep the
                      K_w best and min-max normalise them (eq:wtn)
-      refinement     eqt:best_segments_pose: one PSM per (image, set) with the image's unaries
-                     and binaries (c = 5 mixtures) fit to the set's weighted projected
-                     neighbours; (x^, s^) = the best MAP over the sets
+      refinement     eqt:best_segments_pose: one PSM per (image, set) with the image's
+                     unaries and binaries (c = 5 mixtures) fit to the set's weighted
+                     projected neighbours; (x^, s^) = the best MAP over the sets (ds3d.refine)
     3D fit           eq:energyMin2 once, on the chosen set, with E_p measured against x^
 
 The unaries are computed once; later iterations reuse them.
@@ -27,46 +27,30 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
-from ds3d.image2d.estimator import LOG_EPS, Estimate2D, EstimatorParams, PoseEstimator2D
-from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
-from ds3d.inputs import intrinsics_batch
-from ds3d.lifter import Lifter, LifterConfig, _timed, image_frame
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.result import LOG_EPS, Estimate2D
+from ds3d.lifter import Lifter, LifterConfig, Query
 from ds3d.paths import MODELS_DIR
+from ds3d.refine import RefineParams, refine
 from ds3d.skeleton import NUM_JOINTS
-from ds3d.threads import map_on_threads, split_rows
+from ds3d.timing import stage_timer
 
 STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
 
 
 @dataclass(frozen=True)
-class PipelineConfig:
-    """Parameters of the image-driven steps (the 3D stage's are in LifterConfig).
-
-    iterations: the paper's default 2. selection: "posterior" (eqt:best_segments_pose) or
-    "energy" (eq:energyS; the refined pose is then the chosen set's PSM MAP). components: c of
-    the refinement binaries (the paper: 5). min_var: floor of their per-axis variance, in unary
-    cells^2 (one cell is `stride` px at the working scale). window_margin: cells of search
-    region around the neighbours' projections (search_window). unary_weight: the refinement's
-    unaries relative to the 2D stage's (EstimatorParams.unary_weight), against the binaries.
-    min_var and unary_weight were chosen on LSP train images held out from the 2D model's
-    training (docs/RESULTS.md, pipeline); the margin did not matter there (4 or 8 cells).
-    unary_weight 1 weighs the refinement's unaries as the 2D stage does (8x the binaries):
-    with the 2D stage's local centroid (EstimatorParams.centroid_radius), 0.5 / 1 / 2 / 4 gave
-    43.1 / 43.4 / 43.2 / 42.9 % PCK after iteration 2 on the 300 held-out images, all below
-    the 2D stage's own 44.0 % (docs/RESULTS.md, pipeline).
-    """
+class PipelineConfig(RefineParams):
+    """Parameters of the image-driven steps (the 3D stage's are in LifterConfig): the
+    refinement's (RefineParams), the number of iterations (the paper's default 2) and how the
+    joint set is chosen: "posterior" (eqt:best_segments_pose) or "energy" (eq:energyS; the
+    refined pose is then the chosen set's PSM MAP)."""
 
     iterations: int = 2
     selection: str = "posterior"
-    components: int = 5
-    min_var: float = 4.0
-    window_margin: int = 4
-    unary_weight: float = 1.0
 
     def __post_init__(self):
         if self.iterations < 1:
@@ -121,113 +105,11 @@ class PipelineResult:
         }
 
 
-def image_to_cells(points: torch.Tensor, map_to_image: torch.Tensor) -> torch.Tensor:
-    """Image px -> unary grid cells (u, v). points: (B, ..., 2); map_to_image: (B, 2, 3), the
-    diagonal affine map of Estimate2D. Returns (B, ..., 2) float."""
-    shape = (len(points),) + (1,) * (points.ndim - 2) + (2,)
-    scale = torch.diagonal(map_to_image[:, :, :2], dim1=1, dim2=2).reshape(shape)
-    return (points - map_to_image[:, :, 2].reshape(shape)) / scale
-
-
-def cells_to_image(cells: torch.Tensor, map_to_image: torch.Tensor) -> torch.Tensor:
-    """Unary grid cells (u, v) -> image px; the inverse of image_to_cells. Shapes alike."""
-    shape = (len(cells),) + (1,) * (cells.ndim - 2) + (2,)
-    scale = torch.diagonal(map_to_image[:, :, :2], dim1=1, dim2=2).reshape(shape)
-    return cells * scale + map_to_image[:, :, 2].reshape(shape)
-
-
 def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Tensor:
     """eq:wt: the unaries summed at the projected joints of each neighbour.
     projected: (B, S, K, 14, 2) px of the input image. Returns (B, S, K), higher = better."""
     b, s, k = projected.shape[:3]
     return estimate.sample_unaries(projected.reshape(b, s * k, NUM_JOINTS, 2)).sum(-1).view(b, s, k)
-
-
-@dataclass
-class Refinement:
-    """The PSM MAP of every (image, set). joints_2d: (B, S, 14, 2) px of the input image;
-    score: (B, S) MAP log-posterior (higher is better)."""
-
-    joints_2d: torch.Tensor
-    score: torch.Tensor
-
-
-def search_window(
-    unaries: torch.Tensor, cells: torch.Tensor, margin: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cut one image's unaries down to the cells its neighbours' projections span.
-
-    unaries: (14, h, w); cells: (N, 14, 2) grid cells (u, v); margin: cells added on every
-    side. Cells beyond the unary grid read log(LOG_EPS), the 2D stage's own padding value, so
-    the window depends on the image alone, not on the batch it was padded into. The window
-    stays within `margin` cells of the grid: that bounds the work when projections run far off
-    the image (e.g. under wrong intrinsics), where a batch's larger padded grid could then give
-    an image a wider window than it gets alone.
-    Returns the window (14, H, W) and its origin (2,) long (u, v) in the grid.
-    """
-    h, w = unaries.shape[-2:]
-    bound = torch.tensor([w - 1 + margin, h - 1 + margin], device=cells.device)
-    flat = torch.nan_to_num(cells.flatten(0, 1), nan=0.0, posinf=1e6, neginf=-1e6)
-    lo = (flat.amin(0).floor().long() - margin).clamp(min=-margin).minimum(bound)  # (2,)
-    hi = (flat.amax(0).ceil().long() + margin).minimum(bound).maximum(lo)
-    u = torch.arange(int(lo[0]), int(hi[0]) + 1, device=cells.device)
-    v = torch.arange(int(lo[1]), int(hi[1]) + 1, device=cells.device)
-    window = unaries[:, v.clamp(0, h - 1)[:, None], u.clamp(0, w - 1)[None, :]]
-    inside = ((v >= 0) & (v < h))[:, None] & ((u >= 0) & (u < w))[None, :]
-    return torch.where(inside, window, float(np.log(LOG_EPS))), lo
-
-
-def refine(
-    estimate: Estimate2D,
-    params: EstimatorParams,
-    neighbours_2d: torch.Tensor,
-    weights: torch.Tensor,
-    config: PipelineConfig,
-) -> Refinement:
-    """eqt:best_segments_pose for every (image, set): B * S PSM problems.
-
-    params: the 2D stage's; the refinement's unaries are its log-prob unaries
-    (estimate.unaries) times params.unary_weight * config.unary_weight against the binaries,
-    and its joints go where params.joint_cells puts them; neighbours_2d: (B, S, N, 14, 2) px,
-    the projected neighbours of each set;
-    weights: (B, S, N) >= 0, their sample weights in the binaries (eq:binary fit on them with
-    `config.components` mixtures, all B * S at once). The MAP of an image's S problems is
-    searched together, within `config.window_margin` cells of the span of its neighbours
-    (search_window): one window per image rather than the batch's padded grid, which cuts the
-    cost of the max-convolutions several fold on LSP images. The weight applies after the
-    window is cut, so that cells beyond the grid cost as much as the grid's least likely
-    cells (weighting first would make them cheaper, and draw weak joints off the image).
-    """
-    b, s, n = neighbours_2d.shape[:3]
-    unary_weight = params.unary_weight * config.unary_weight
-    cells = image_to_cells(neighbours_2d.reshape(b, s * n, NUM_JOINTS, 2), estimate.map_to_image)
-    windows = [search_window(estimate.unaries[i], cells[i], config.window_margin) for i in range(b)]
-    origin = torch.stack([o for _, o in windows])  # (B, 2)
-    local = (cells - origin[:, None, None, :]).reshape(b * s, n, NUM_JOINTS, 2)
-    mixtures = fit_pairwise_mixtures(
-        local, weights.reshape(b * s, n), n_components=config.components, min_var=config.min_var
-    )
-
-    def solve(rows: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """(cells (S, 14, 2), score (S,)) of the S problems of each image in rows."""
-        out = []
-        for i in rows.tolist():
-            window, part = windows[i][0], slice(i * s, (i + 1) * s)
-            res = infer(
-                (unary_weight * window)[None].expand(s, -1, -1, -1),
-                PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
-                stride=1.0,
-            )
-            out.append(
-                (params.joint_cells(window[None].expand(s, -1, -1, -1), res.cells), res.score)
-            )
-        return out
-
-    # One image at a time (each its own window), so whole images go to parallel threads.
-    solved = [one for part in map_on_threads(solve, split_rows(b)) for one in part]
-    found = torch.stack([c for c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
-    joints_2d = cells_to_image(found, estimate.map_to_image).view(b, s, NUM_JOINTS, 2)
-    return Refinement(joints_2d, torch.stack([score for _, score in solved]))
 
 
 class Pipeline:
@@ -289,64 +171,30 @@ class Pipeline:
         est = dataclasses.replace(
             estimate, unaries=estimate.unaries.to(dev), map_to_image=estimate.map_to_image.to(dev)
         )
-        b = len(est.joints_2d)
-        k = intrinsics_batch(intrinsics, b)
-        x0 = est.joints_2d.to(dev)
-        visible = torch.ones(b, NUM_JOINTS, dtype=torch.bool, device=dev)
         # One frame for every iteration: the warm-started projections stay in its coordinates.
-        frame = image_frame(x0, visible, None if k is None else k.to(dev))
-        usable = lifter.usable_sets(visible)
-        rows = torch.arange(b, device=dev)
-
-        x, params = x0, None
-        best = None  # per image, the (set, iteration) state with the best posterior so far
+        first = lifter.query(est.joints_2d.to(dev), None, intrinsics)
+        query, best = first, None  # best: per image, the state with the best posterior so far
+        start = None  # the projections of the iteration before, for a warm start
         history, energies = [], []
         for _ in range(cfg.iterations):
-            with torch.no_grad(), _timed(timings, "retrieval", dev):
-                candidates = lifter.retrieve(x)
-            with _timed(timings, "projection_fit", dev):
-                params, _ = lifter.fit_projections(candidates, x, visible, frame, start=params)
-            with torch.no_grad(), _timed(timings, "weighting", dev):
-                projected = project(candidates, params, frame.unsqueeze(1))
-                kept, weights, _ = lifter.weight_neighbours(
-                    candidates, neighbour_scores(est, projected)
-                )
-                kept_2d = project(kept, params, frame.unsqueeze(1))
-            with torch.no_grad(), _timed(timings, "refinement", dev):
-                ref = refine(est, self.estimator.params, kept_2d, weights, cfg)
-                if cfg.selection == "posterior":
-                    chosen = torch.where(usable, ref.score, -torch.inf).argmax(-1)
-                else:
-                    own_joints = lifter.set_masks[None] * visible[:, None].float()
-                    residuals = projection_energy(kept_2d, x[:, None], own_joints)
-                    _, chosen = lifter.choose_set(
-                        kept, weights, residuals, params, x, visible, frame
-                    )
-                state = _State(
-                    kept,
-                    weights,
-                    params,
-                    chosen,
-                    ref.joints_2d[rows, chosen],
-                    ref.score[rows, chosen],
-                )
-                # energy selection has no common measure across iterations: the last one wins
-                best = state if best is None or cfg.selection == "energy" else best.merge(state)
-            x = best.joints_2d
-            history.append(x)
+            state = self._iterate(est, query, start, cfg, timings)
+            start = state.params
+            # energy selection has no common measure across iterations: the last one wins
+            best = state if best is None or cfg.selection == "energy" else best.merge(state)
+            query = query.moved_to(best.joints_2d)
+            history.append(best.joints_2d)
             energies.append(-best.score)
 
-        with _timed(timings, "pose_fit", dev):
-            pose = lifter.fit_pose(
-                best.kept, best.weights, best.params, x, visible, frame, best.joint_set
-            )
+        with stage_timer(timings, "pose_fit", dev):
+            pose = lifter.fit_pose(best.kept, best.weights, best.params, query, best.joint_set)
+        x = query.joints_2d
         with torch.no_grad():
             probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
         timings["total"] = 1000 * elapsed
         return PipelineResult(
             joints_2d=x.cpu(),
-            joints_2d_initial=x0.cpu(),
+            joints_2d_initial=first.joints_2d.cpu(),
             joints_2d_iterations=torch.stack(history, 1).cpu(),
             joints_3d=pose.detach().cpu(),
             confidence=probability.clamp(0.0, 1.0).cpu(),
@@ -355,6 +203,43 @@ class Pipeline:
             psm_energy=torch.stack(energies, 1).cpu(),
             iterations=cfg.iterations,
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
+        )
+
+    def _iterate(
+        self,
+        est: Estimate2D,
+        query: Query,
+        start: torch.Tensor | None,
+        cfg: PipelineConfig,
+        timings: dict[str, float],
+    ) -> _State:
+        """One iteration from the query's 2D pose: neighbours (projections warm-started from
+        `start`, (B, S, 6)), weighted by the image (eq:wt), the refinement of every set, and
+        the set chosen by cfg.selection. Adds the stages' ms to timings."""
+        lifter, dev = self.lifter, self.lifter.device
+        found = lifter.neighbours(query, start, timings)
+        frame = query.frame.unsqueeze(1)
+        with torch.no_grad(), stage_timer(timings, "weighting", dev):
+            scores = neighbour_scores(est, project(found.poses, found.params, frame))
+            kept, weights, _ = lifter.weight_neighbours(found.poses, scores)
+            kept_2d = project(kept, found.params, frame)
+        with torch.no_grad(), stage_timer(timings, "refinement", dev):
+            ref = refine(est, self.estimator.params, kept_2d, weights, cfg)
+            if cfg.selection == "posterior":
+                usable = lifter.usable_sets(query.visible)
+                chosen = torch.where(usable, ref.score, -torch.inf).argmax(-1)
+            else:
+                own_joints = lifter.set_masks[None] * query.visible[:, None].float()
+                residuals = projection_energy(kept_2d, query.joints_2d[:, None], own_joints)
+                _, chosen = lifter.choose_set(kept, weights, residuals, found.params, query)
+        rows = torch.arange(len(chosen), device=dev)
+        return _State(
+            kept,
+            weights,
+            found.params,
+            chosen,
+            ref.joints_2d[rows, chosen],
+            ref.score[rows, chosen],
         )
 
 

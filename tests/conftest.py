@@ -28,3 +28,24 @@ def lifter():
     if not (MODELS_DIR / "posedb" / "poses.npy").is_file():
         pytest.fail("the bundled pose database models/posedb is missing")
     return Lifter.load()
+
+
+@pytest.fixture(scope="session")
+def small_model(data_dir, tmp_path_factory):
+    """A --small 2D model (seed 3), trained here on real LSP data in seconds."""
+    from ds3d.cli import main as cli
+
+    out = tmp_path_factory.mktemp("image2d")
+    assert cli(["train-2d", "--small", "--no-eval", "--out", str(out), "--seed", "3"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def model_dir(data_dir, tmp_path_factory):
+    """A --small 2D model beside a link to the bundled pose database."""
+    from ds3d.cli import main as cli
+
+    out = tmp_path_factory.mktemp("models")
+    assert cli(["train-2d", "--small", "--no-eval", "--out", str(out / "image2d")]) == 0
+    (out / "posedb").symlink_to(MODELS_DIR / "posedb")
+    return out

@@ -11,6 +11,8 @@ random joint per pose displaced by a fixed distance in a random direction.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,3 +107,32 @@ def evaluate(lifter, cases: ProtocolCases, noise_px=0.0, outlier_px=0.0, seed=0,
     joints_2d = perturb(cases.joints_2d, noise_px, outlier_px, seed)
     pred, sets = lift_all(lifter, cases, joints_2d, batch_size)
     return score(pred, cases, sets)
+
+
+# Variants of the protocol: (perturbation of the 2D input, LifterConfig overrides).
+VARIANTS: dict[str, tuple[dict, dict]] = {
+    "clean": ({}, {}),
+    "noise5": ({"noise_px": 5.0}, {}),
+    "noise10": ({"noise_px": 10.0}, {}),
+    "outlier40": ({"outlier_px": 40.0}, {}),
+    "all-only": ({}, {"joint_sets": ("all",)}),
+    "all-only-outlier40": ({"outlier_px": 40.0}, {"joint_sets": ("all",)}),
+    "paper-selection": ({}, {"select_on_all_joints": False}),
+    "paper-selection-outlier40": ({"outlier_px": 40.0}, {"select_on_all_joints": False}),
+    "unweighted": ({}, {"weighting": False}),
+    "projection-fit-20": ({}, {"projection_iterations": 20}),
+    "pose-fit-30": ({}, {"pose_iterations": 30}),
+    "nprobe16": ({}, {"nprobe": 16}),
+}
+
+
+def evaluate_variant(lifter, cases: ProtocolCases, name: str, base_config) -> dict:
+    """The protocol for one of VARIANTS: the lifter configured as `base_config` (a LifterConfig)
+    with the variant's overrides, on the variant's perturbed input. Leaves the lifter so
+    configured. Returns evaluate's report with the seconds it took."""
+    perturbation, overrides = VARIANTS[name]
+    lifter.configure(dataclasses.replace(base_config, **overrides))
+    start = time.perf_counter()
+    report = evaluate(lifter, cases, **perturbation)
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    return report

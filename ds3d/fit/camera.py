@@ -114,3 +114,15 @@ def initial_params(
     ab = (c2 - principal) / focal - c3[..., :2] / depth[..., None]
     ab = ab * focal / frame.spread[..., None]
     return torch.cat([zeros, zeros, zeros, ab, (depth / DEPTH_UNIT).log()[..., None]], -1)
+
+
+def image_frame(
+    joints_2d: torch.Tensor, visible: torch.Tensor, intrinsics: torch.Tensor | None
+) -> CameraFrame:
+    """The fixed per-pose frame of the projection model: the visible joints' centroid and RMS
+    spread (px) for weak perspective; intrinsics when given. joints_2d: (B, 14, 2) px;
+    visible: (B, 14) bool; intrinsics: None or (B, 3, 3)."""
+    m = visible.float()[..., None]
+    centre = (joints_2d * m).sum(-2) / m.sum(-2)
+    spread = (((joints_2d - centre[:, None]) ** 2 * m).sum((-1, -2)) / m.sum((-1, -2))).sqrt()
+    return CameraFrame(intrinsics, centre, spread.clamp_min(1.0))

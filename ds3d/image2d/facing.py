@@ -23,7 +23,7 @@ from ds3d.skeleton import L_HIP, NECK, R_HIP
 
 CROP = 64  # px at the working scale
 # (right chain, left chain) of the arms from the shoulder and of the legs from the hip, for the
-# observer-centric relabelling of EstimatorParams.observer_labels (ds3d.image2d.train).
+# observer-centric relabelling of EstimatorParams.observer_labels (ds3d.training.images).
 CHAINS = (((8, 7, 6), (9, 10, 11)), ((2, 1, 0), (3, 4, 5)))
 
 

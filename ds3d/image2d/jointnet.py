@@ -6,7 +6,7 @@ PCK@0.2 on LSP test against every growing knob tried (docs/RESULTS.md), and it c
 from right: it reads pixels within 40 px of each one. This network sees the whole person
 (a receptive field of about 300 px at the working scale, where a person spans 100 px) and is
 trained on person-centric labels, so its maps carry which arm is the right one. The PSM sums
-both unaries (EstimatorParams.jointnet_weight, estimator.left_right_hypotheses); the forests
+both unaries (InferenceParams.jointnet_weight, left_right.left_right_hypotheses); the forests
 stay the paper's unary. On LSP test: 62.7 % PCK@0.2 with both, 40.4 % with the forests alone
 (docs/RESULTS.md).
 
@@ -18,7 +18,7 @@ it at inference, as training windows reach past their images).
 
 Its maps are softmaxed over each image's cells: P(joint at the cell), a distribution over
 positions per joint, as trained (a cross-entropy against a Gaussian around the annotated
-joint, ds3d.image2d.jointnet_train).
+joint, ds3d.training.jointnet).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import NUM_JOINTS
 
 STRIDE = 4  # input px per output cell
@@ -108,3 +109,19 @@ def spatial_softmax(logits: Tensor) -> Tensor:
     the cell), each map summing to 1."""
     b, j, h, w = logits.shape
     return torch.softmax(logits.reshape(b, j, h * w), -1).reshape(b, j, h, w)
+
+
+def jointnet_unaries(
+    net: JointNet, channels: Tensor, sizes: list[tuple[int, int]], stride: int
+) -> Tensor:
+    """The joint network's unaries on the grid: channels (b, 12, H, W) zero-padded, sizes b
+    (h, w) -> (b, 14, gh, gw) log(P(joint at the cell) + LOG_EPS), floored as the forests'
+    unaries are; log(LOG_EPS) outside each image. Each image runs alone on its own pixels:
+    past the first batch norm, a padded batch's zeros are no longer zeros, and the network
+    sees about 300 px around each cell."""
+    h, w = channels.shape[-2:]
+    out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), LOG_EPS)
+    for i, (hi, wi) in enumerate(sizes):
+        logits = logits_on_grid(net, channels[i : i + 1, :3, :hi, :wi], stride)
+        out[i, :, : logits.shape[2], : logits.shape[3]] = spatial_softmax(logits)[0] + LOG_EPS
+    return out.log()

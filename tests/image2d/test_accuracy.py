@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from ds3d.data.lsp import load_lsp
-from ds3d.image2d.commands import DEFAULT_MODEL, evaluate
+from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
-from ds3d.paths import data_root
+from ds3d.paths import MODELS_DIR, data_root
 
 MEASURED = {"psm": 0.6400, "unary_argmax": 0.6114}  # PCK@0.2, first 100 LSP test images
 MARGIN = 0.03
@@ -26,6 +26,6 @@ MARGIN = 0.03
 def test_pck_on_100_lsp_test_images_does_not_regress():
     torch.set_num_threads(1)
     test = load_lsp(split="test").subset(range(100))
-    result = evaluate(PoseEstimator2D.load(DEFAULT_MODEL), test)
+    result = evaluate_2d(PoseEstimator2D.load(MODELS_DIR / "image2d"), test)
     for name, floor in MEASURED.items():
         assert result[name]["pck@0.2"] >= floor - MARGIN, (name, result[name])

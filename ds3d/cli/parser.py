@@ -1,7 +1,8 @@
-"""The `ds3d` command line. Each part of the library registers its own subcommands:
-a module listed in COMMAND_MODULES has `register(commands, evals, benches)`, where the three
-arguments are argparse sub-parser collections for `ds3d <cmd>`, `ds3d eval <what>` and
-`ds3d bench <what>`; every parser it adds sets `func=callable(args) -> int | None`.
+"""The `ds3d` parser. Each area module listed in COMMAND_MODULES has `register(commands, evals,
+benches)`, where the three arguments are argparse sub-parser collections for `ds3d <cmd>`,
+`ds3d eval <what>` and `ds3d bench <what>`; every parser it adds sets
+`func=callable(args) -> int | None`. Shared here: the model options, `--set NAME=VALUE`
+overrides of a dataclass's fields, and JSON reports.
 """
 
 from __future__ import annotations
@@ -13,15 +14,24 @@ import sys
 import typing
 from pathlib import Path
 
+import torch
+
+from ds3d.paths import MODELS_DIR
+
 COMMAND_MODULES: tuple[str, ...] = (
-    "ds3d.lift_commands",
-    "ds3d.image2d.commands",
-    "ds3d.pipeline_commands",
+    "ds3d.cli.data",
+    "ds3d.cli.lift",
+    "ds3d.cli.image2d",
+    "ds3d.cli.pipeline",
+    "ds3d.cli.bench",
 )
+DEFAULT_IMAGE2D = MODELS_DIR / "image2d"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ds3d", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="ds3d", description="The `ds3d` command line: 3D human pose from a single image."
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     evals = commands.add_parser("eval", help="evaluate on a dataset protocol").add_subparsers(
         dest="what", required=True
@@ -32,6 +42,33 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(commands, evals, benches)
     return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+def add_model_options(parser, threads: int | None = 1, device: bool = False) -> None:
+    """--model-dir (holds image2d/ and the pose databases), --database, --threads (default
+    `threads`; None: torch's default) and, with `device`, --device."""
+    parser.add_argument(
+        "--model-dir", type=Path, default=MODELS_DIR, help="holds image2d/, posedb/"
+    )
+    parser.add_argument("--database", default="posedb", help="pose database folder in --model-dir")
+    if device:
+        parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--threads", type=int, default=threads, help="torch CPU threads")
+
+
+def set_threads(args) -> None:
+    """torch's CPU threads from --threads, when given."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+
+def add_set_option(parser, text: str) -> None:
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=text)
 
 
 def field_overrides(cls, items: list[str]) -> dict:
@@ -75,11 +112,6 @@ def write_report(report: dict, out: Path | None) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text + "\n")
     print(f"wrote {out}", file=sys.stderr)
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
 
 
 if __name__ == "__main__":

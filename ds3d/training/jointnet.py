@@ -1,7 +1,7 @@
 """Training of the joint network (ds3d.image2d.jointnet) on the 2D stage's training images.
 
 The data is one WINDOW x WINDOW window of Lab channels per image at the working scale, around
-the person (train.jointnet_windows). Every draw cuts a CROP x CROP view from it, rotated
+the person (jointnet_windows). Every draw cuts a CROP x CROP view from it, rotated
 (+-ROTATION degrees), zoomed (x ZOOM[0]-ZOOM[1]: the pyramid's residual scale error and more),
 shifted, mirrored at random (left and right labels swapped with it) and jittered in lightness
 and colour. The target of a
@@ -22,8 +22,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ds3d.data.lsp import PoseAnnotations
+from ds3d.image2d.facing import crop
+from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet
-from ds3d.skeleton import FLIP
+from ds3d.image2d.params import EstimatorParams
+from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.training.config import TrainConfig
+from ds3d.training.images import load_training_image
 
 log = logging.getLogger(__name__)
 
@@ -112,3 +118,30 @@ def train_jointnet(
             total += float(loss.detach()) * len(rows)
         log.info("jointnet epoch %d: loss %.4f", epoch + 1, total / len(windows))
     return net.eval()
+
+
+def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tensor, ...]:
+    """The joint network's training data (below): per image, a window of
+    WINDOW x WINDOW px of Lab / 100 at the working scale, centred on the box around its located
+    joints; the joints in window px; which are located. Returns ((N, 3, WINDOW, WINDOW) float16,
+    (N, 14, 2) float32 (x, y), (N, 14) bool)."""
+    size = WINDOW
+    windows = torch.empty(len(ann), 3, size, size, dtype=torch.float16)
+    joints = torch.empty(len(ann), NUM_JOINTS, 2)
+    located = torch.from_numpy(ann.located.copy())
+    for i in range(len(ann)):
+        sample = load_training_image(ann, i, False, params)
+        pts = torch.from_numpy(sample.joints)
+        known = pts[located[i]] if located[i].sum() >= 2 else pts
+        centre = ((known.min(0).values + known.max(0).values) / 2)[None]
+        lab = lab_channels(torch.from_numpy(sample.image)[None])
+        windows[i] = crop(lab, centre, size=size)[0].half()
+        joints[i] = pts - centre + (size - 1) / 2
+    return windows, joints, located
+
+
+def fit_jointnet(ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig) -> dict:
+    """The joint network's state dict, from jointnet_windows + train_jointnet."""
+    windows = jointnet_windows(ann, params)
+    net = train_jointnet(*windows, cfg.jointnet_epochs, cfg.jointnet_lr, cfg.seed)
+    return net.state_dict()

@@ -1,0 +1,48 @@
+"""`ds3d build-db`: a 3D pose database from motion capture (Human3.6M or CMU BVH)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ds3d.paths import MODELS_DIR
+
+DEDUPE_MM = 60.0  # the bundled database's (docs/RESULTS.md, "How parameters were chosen")
+
+
+def register(commands, evals, benches) -> None:
+    p = commands.add_parser("build-db", help="build a 3D pose database from mocap")
+    p.add_argument("--source", choices=("h36m", "cmu"), default="h36m")
+    p.add_argument("--subjects", default="S1,S5,S6,S7,S8,S9", help="Human3.6M subjects")
+    p.add_argument("--bvh", type=Path, nargs="*", help="BVH files or folders (cmu source)")
+    p.add_argument("--dedupe-mm", type=float, default=DEDUPE_MM)
+    p.add_argument("--out", type=Path, default=MODELS_DIR / "posedb")
+    p.set_defaults(func=build_db)
+
+
+def build_db(args) -> int:
+    from ds3d.mocap.database import PoseDatabase
+
+    start = time.perf_counter()
+    if args.source == "h36m":
+        from ds3d.data.h36m import load_h36m_poses
+
+        subjects = tuple(args.subjects.split(","))
+        poses = load_h36m_poses(subjects)
+        manifest = {"source": "h36m", "subjects": list(subjects)}
+    else:
+        from ds3d.data.cmu import load_cmu_poses
+
+        poses = load_cmu_poses(args.bvh or None)
+        manifest = {
+            "source": "cmu",
+            "files": [str(p) for p in args.bvh or ["cmu_bvh/*"]],
+            "retargeted_to": "h36m median bone lengths",
+        }
+    db = PoseDatabase.from_world_poses(poses, args.dedupe_mm, manifest)
+    db.save(args.out)
+    print(
+        f"{len(poses)} poses -> {len(db.poses)} after {args.dedupe_mm:g} mm dedupe, "
+        f"{len(db)} entries; {time.perf_counter() - start:.1f} s -> {args.out}"
+    )
+    return 0

@@ -1,0 +1,151 @@
+"""The 2D stage's commands: `ds3d train-2d`, `ds3d train-jointnet`, `ds3d eval lsp`."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from ds3d.cli.parser import DEFAULT_IMAGE2D, add_set_option, field_overrides, write_report
+from ds3d.data.lsp import load_lsp
+from ds3d.evaluation.lsp import evaluate_2d
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_setup
+from ds3d.image2d.params import EstimatorParams, InferenceParams
+from ds3d.paths import project_relative
+from ds3d.training.config import TrainConfig
+from ds3d.training.image2d import train
+from ds3d.training.images import training_annotations
+from ds3d.training.jointnet import fit_jointnet
+
+# `--small`: a few dozen images and a handful of shallow trees; trains in well under a minute
+# and exists to exercise the whole path (tests, CI), not to be accurate.
+SMALL = {
+    "max_images": 40,
+    "trees": (3, 3),
+    "images_per_tree": 20,
+    "pool_size": 128,
+    "max_depth": 10,
+    "min_samples_leaf": 5,
+    "psm_iterations": 10,
+    "facing_epochs": 1,
+    "jointnet_epochs": 1,
+}
+
+INFERENCE_OVERRIDE = "override an InferenceParams field of the model (e.g. n_scales=4)"
+
+
+def register(commands, evals, benches) -> None:
+    p = commands.add_parser("train-2d", help="train the 2D pose model (forest cascade + PSM)")
+    p.add_argument("--out", type=Path, default=DEFAULT_IMAGE2D)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--n-val",
+        type=int,
+        default=TrainConfig.n_val,
+        help="last LSP train images held out for validation",
+    )
+    p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    p.add_argument(
+        "--observer-labels",
+        action="store_true",
+        help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
+    )
+    add_set_option(p, "an EstimatorParams field to train with (e.g. context_pose_sigma=none)")
+    p.set_defaults(func=cmd_train)
+
+    j = commands.add_parser(
+        "train-jointnet", help="(re)train only the joint network of a 2D model, in place"
+    )
+    j.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
+    j.add_argument("--threads", type=int, default=2)
+    j.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    j.set_defaults(func=cmd_train_jointnet)
+
+    e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
+    e.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
+    e.add_argument(
+        "--split",
+        choices=("test", "train"),
+        default="test",
+        help="train: for tuning on the images a model holds out (see --start)",
+    )
+    e.add_argument("--start", type=int, default=0, help="skip the split's first n images")
+    e.add_argument("--limit", type=int, default=None, help="first N images only (after --start)")
+    e.add_argument("--batch", type=int, default=16)
+    e.add_argument("--threads", type=int, default=1)
+    e.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    e.add_argument(
+        "--write-manifest", action="store_true", help="record the metrics in the model manifest"
+    )
+    add_set_option(e, INFERENCE_OVERRIDE)
+    e.set_defaults(func=cmd_eval_lsp)
+
+
+def load_estimator(args) -> PoseEstimator2D:
+    """The 2D model of --model with the --set overrides of its inference parameters."""
+    est = PoseEstimator2D.load(args.model)
+    est.params = est.params.with_inference(**field_overrides(InferenceParams, args.set))
+    return est
+
+
+def cmd_train(args) -> int:
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
+    overrides = field_overrides(EstimatorParams, args.set)
+    params = EstimatorParams(**{"observer_labels": args.observer_labels, **overrides})
+    evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
+    manifest = train(cfg, params, args.out, evaluate=evaluate)
+    print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
+    return 0
+
+
+def cmd_train_jointnet(args) -> int:
+    """Train the joint network on the training images of the model's own manifest (its seed,
+    held-out count and image cap) and add it to the model: what `train-2d` does beside the
+    forests, on --threads threads instead of one."""
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    saved, params = training_setup(args.model)
+    cfg = TrainConfig(**{**saved, "trees": tuple(saved["trees"])})
+    t0 = time.perf_counter()
+    state = fit_jointnet(training_annotations(cfg)[0], params, cfg)
+    manifest = replace_jointnet(args.model, state, saved, time.perf_counter() - t0)
+    if not args.no_eval:
+        manifest = record_metrics(args.model, "validation", evaluate_validation(args.model, cfg))
+    print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
+    return 0
+
+
+def evaluate_validation(model_dir: Path, cfg: TrainConfig) -> dict:
+    """LSP's protocol on the images the training of `cfg` held out."""
+    _, val = training_annotations(cfg)
+    return evaluate_2d(PoseEstimator2D.load(model_dir), val)
+
+
+def cmd_eval_lsp(args) -> int:
+    if args.write_manifest and (args.split != "test" or args.start or args.set):
+        raise SystemExit("--write-manifest records LSP test results of the model as saved")
+    torch.set_num_threads(args.threads)
+    est = load_estimator(args)
+    ann = load_lsp(split=args.split)
+    end = len(ann) if args.limit is None else min(args.start + args.limit, len(ann))
+    ann = ann.subset(range(args.start, end))
+    first = 1 if args.split == "train" else 1001
+    result = {
+        "dataset": f"LSP {args.split} im{first + args.start:04d}-im{first + end - 1:04d}",
+        "model": project_relative(args.model),
+        "overrides": args.set,
+    }
+    result |= evaluate_2d(est, ann, batch=args.batch)
+    write_report(result, args.out)
+    if args.write_manifest:
+        key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
+        record_metrics(args.model, key, result)
+    return 0

@@ -1,0 +1,126 @@
+"""LSP's 2D protocol: PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and
+mean, and mean pixel error, over all 14 joints of every image (occluded joints included), for
+the 2D stage (evaluate_2d) and for the 3D stage's 2D refinement and its ablation, the paper's
+fig:query (evaluate_refinement).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import torch
+
+from ds3d.data.lsp import PoseAnnotations
+from ds3d.evaluation.metrics import pck, pixel_error
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.result import Estimate2D
+from ds3d.image_io import read_image
+from ds3d.lifter import LifterConfig
+from ds3d.pipeline import Pipeline, PipelineConfig
+from ds3d.skeleton import JOINT_NAMES
+
+# The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
+# weighting) and the full method (K = 256 -> K_w = 64 weighted, two iterations), as
+# (PipelineConfig fields, LifterConfig fields).
+REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
+    "full": ({}, {}),
+    "all-only": ({"iterations": 1}, {"joint_sets": ("all",), "weighting": False}),
+    "energy": ({"iterations": 1, "selection": "energy"}, {"weighting": False}),
+    "posterior": ({"iterations": 1}, {"weighting": False}),
+}
+
+Progress = Callable[[int, int], None]  # (images done, images in all)
+
+
+def pck_report(pred: torch.Tensor, gt: torch.Tensor, per_joint: bool = False) -> dict:
+    """pred, gt: (N, 14, 2) px -> PCK@0.2 (and per joint) and the mean pixel error."""
+    joint_pck = pck(pred, gt)
+    report = {"pck@0.2": round(float(joint_pck.mean()), 4)}
+    if per_joint:
+        report["pck@0.2_per_joint"] = {
+            n: round(float(v), 4) for n, v in zip(JOINT_NAMES, joint_pck, strict=True)
+        }
+    report["mean_pixel_error"] = round(float(pixel_error(pred, gt).mean()), 2)
+    return report
+
+
+def argmax_joints(res: Estimate2D) -> torch.Tensor:
+    """No PSM: per joint, the best cell of the returned unaries (the forests', plus the joint
+    network's where the model has one). (B, 14, 2) px."""
+    b, j, _, w = res.unaries.shape
+    best = res.unaries.reshape(b, j, -1).argmax(-1)
+    uv1 = torch.stack([best % w, best // w, torch.ones_like(best)], -1).float()
+    return torch.einsum("bij,bkj->bki", res.map_to_image, uv1)
+
+
+def evaluate_2d(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> dict:
+    """The protocol for the 2D stage: the full model (pyramid + PSM) and the unaries alone
+    (argmax_joints: the argmax of each joint's unary map at the scale the PSM chose, with its
+    left/right decision)."""
+    preds, argmax = [], []
+    t0 = time.perf_counter()
+    for i in range(0, len(ann), batch):
+        images = [read_image(p) for p in ann.image_paths[i : i + batch]]
+        res = est.estimate(images)
+        preds.append(res.joints_2d)
+        argmax.append(argmax_joints(res))
+    seconds = time.perf_counter() - t0
+    gt = torch.from_numpy(ann.joints)
+    out = {"n_images": len(ann), "seconds": round(seconds, 1)}
+    for name, pred in (("psm", torch.cat(preds)), ("unary_argmax", torch.cat(argmax))):
+        out[name] = pck_report(pred, gt, per_joint=True)
+    return out
+
+
+def variant_configs(name: str, overrides: dict) -> tuple[PipelineConfig, LifterConfig]:
+    """The configurations of one of REFINEMENT_VARIANTS, with PipelineConfig field overrides."""
+    config, lifter_config = REFINEMENT_VARIANTS[name]
+    return PipelineConfig(**(config | overrides)), LifterConfig(**lifter_config)
+
+
+def describe_variant(config: PipelineConfig, lifter_config: LifterConfig) -> dict:
+    keep = ("neighbours", "weighted_neighbours", "weighting", "joint_sets")
+    return dataclasses.asdict(config) | {k: getattr(lifter_config, k) for k in keep}
+
+
+def evaluate_refinement(
+    pipeline: Pipeline,
+    ann: PoseAnnotations,
+    names: list[str],
+    overrides: dict | None = None,
+    batch: int = 16,
+    progress: Progress | None = None,
+) -> dict:
+    """The protocol for the 2D pose after each iteration of each of REFINEMENT_VARIANTS
+    `names` (with PipelineConfig field `overrides`), beside the 2D stage's ("initial"), all
+    from one 2D estimate per image. Leaves the pipeline configured as the last variant.
+    Returns {"variants", "seconds", "results"}."""
+    overrides = overrides or {}
+    preds: dict[str, list[torch.Tensor]] = {"initial": []}
+    seconds = dict.fromkeys(["2d", *names], 0.0)
+    for start in range(0, len(ann), batch):
+        t0 = time.perf_counter()
+        images = [read_image(p) for p in ann.image_paths[start : start + batch]]
+        estimate = pipeline.estimator.estimate(images)
+        seconds["2d"] += time.perf_counter() - t0
+        preds["initial"].append(estimate.joints_2d)
+        for name in names:
+            t0 = time.perf_counter()
+            pipeline.config, lifter_config = variant_configs(name, overrides)
+            pipeline.lifter.configure(lifter_config)
+            res = pipeline.lift_estimate(estimate)
+            for t in range(res.iterations):
+                preds.setdefault(f"{name}/iteration{t + 1}", []).append(
+                    res.joints_2d_iterations[:, t]
+                )
+            seconds[name] += time.perf_counter() - t0
+        if progress is not None:
+            progress(start + len(images), len(ann))
+    gt = torch.from_numpy(ann.joints)
+    return {
+        "variants": {n: describe_variant(*variant_configs(n, overrides)) for n in names},
+        "seconds": {k: round(v, 1) for k, v in seconds.items()},
+        "results": {k: pck_report(torch.cat(v), gt) for k, v in preds.items()},
+    }

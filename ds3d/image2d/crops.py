@@ -1,0 +1,62 @@
+"""Where each image's working region comes from: the person box (with a margin) or the whole
+image, and the base scale that brings a person filling it to the canonical extent."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ds3d.errors import InvalidImage
+from ds3d.image2d.params import EstimatorParams
+
+
+def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W, 3) uint8 -> (round(H * scale), round(W * scale), 3) uint8, area-averaged when
+    shrinking. The exact per-axis factors are the ratios of the shapes."""
+    h, w = image.shape[:2]
+    nh, nw = max(round(h * scale), 1), max(round(w * scale), 1)
+    if (nh, nw) == (h, w):
+        return image
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return cv2.resize(image, (nw, nh), interpolation=interp)
+
+
+@dataclass
+class Crop:
+    """Where one image's working region comes from: its top-left corner (x0, y0) in image px
+    and the base scale (working px per image px)."""
+
+    image: np.ndarray
+    x0: int
+    y0: int
+    base: float
+
+
+def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[Crop]:
+    """Base scale per image: from the person box if given, else from the image size."""
+    out = []
+    for i, image in enumerate(images):
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InvalidImage(
+                f"image {i} must be (H, W, 3) uint8, got {image.shape} {image.dtype}"
+            )
+        box = None if bboxes is None else bboxes[i]
+        if box is None:
+            extent = max(image.shape[:2]) / params.image_to_extent
+            out.append(Crop(image, 0, 0, params.canonical_extent / extent))
+            continue
+        x0, y0, x1, y1 = (float(v) for v in box)
+        if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
+            raise ValueError(f"bbox {i} must be finite (x0, y0, x1, y1) with x1 > x0, y1 > y0")
+        extent = max(x1 - x0, y1 - y0) / params.box_to_extent
+        margin = params.box_margin * extent
+        h, w = image.shape[:2]
+        cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
+        cx1, cy1 = min(int(np.ceil(x1 + margin)), w), min(int(np.ceil(y1 + margin)), h)
+        if cx1 <= cx0 or cy1 <= cy0:
+            raise ValueError(f"bbox {i} lies outside its image")
+        crop = np.ascontiguousarray(image[cy0:cy1, cx0:cx1])
+        out.append(Crop(crop, cx0, cy0, params.canonical_extent / extent))
+    return out

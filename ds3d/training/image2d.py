@@ -1,0 +1,96 @@
+"""train(): the whole 2D model, a forest cascade, the PSM's pairwise mixtures and a network (the
+joint network, a second unary, or for a model without one the facing CNN), written as one model
+directory (ds3d.image2d.model_files).
+
+The joint network learns person-centric labels from the whole person, and so which arm is the
+right one. Without it, whether the person faces the camera is learnt by the facing CNN. Labels
+can be observer-centric outright (ModelParams.observer_labels): in every training image the arm
+whose shoulder is on the image's left is called "right", and likewise the leg by its hip, which
+is what local image evidence can tell.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ds3d.data.lsp import PoseAnnotations
+from ds3d.image2d.model_files import record_metrics, save_model
+from ds3d.image2d.params import EstimatorParams
+from ds3d.training.config import TrainConfig
+from ds3d.training.facing import fit_facing
+from ds3d.training.forests import grow_cascade
+from ds3d.training.images import training_annotations
+from ds3d.training.jointnet import fit_jointnet
+from ds3d.training.psm import fit_psm
+
+log = logging.getLogger(__name__)
+
+
+def fit_on_one_thread(
+    fit, ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig, log_level: int
+) -> tuple[dict[str, Tensor], float]:
+    """fit_facing or fit_jointnet on one torch thread (train runs each in a worker process
+    beside the forests): the state dict and the seconds it took. One thread, because the
+    result depends on the thread count (the order in which gradients are summed)."""
+    logging.basicConfig(level=log_level, format="%(asctime)s %(message)s")
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    return fit(ann, params, cfg), time.perf_counter() - t0
+
+
+def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=None) -> dict:
+    """Train the cascade, the PSM and one network (the joint network, or the facing CNN where
+    cfg.jointnet_epochs is 0); write them with manifest.json to out_dir.
+
+    evaluate: None or a callable(out_dir) -> dict of metrics, stored in the manifest.
+    Returns the manifest dict.
+    """
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    train_ann, _ = training_annotations(cfg)
+    # One disjoint share of the images per layer: a context layer reads the maps of the layers
+    # before it on images they never saw (stacking without leakage). Layer 1 draws a flip per
+    # tree and image; later layers read precomputed maps, so each of their images has one flip.
+    shares = np.array_split(rng.permutation(len(train_ann)), len(cfg.trees))
+    items = [[(int(i), False) for i in shares[0]]] + [
+        [(int(i), bool(rng.random() < 0.5)) for i in share] for share in shares[1:]
+    ]
+    t0 = time.perf_counter()
+    mixtures = fit_psm(train_ann, cfg, params)  # first: the cascade's contexts may run the PSM
+    timings = {"psm": time.perf_counter() - t0}
+    # The network needs nothing from the forests: it trains beside them in a process of its own
+    # on one thread (scikit-learn grows a tree on one core), so that it is the same whatever
+    # --threads says. The joint network settles left and right itself
+    # (ds3d.image2d.left_right); the facing CNN serves models without one.
+    name, fit = ("jointnet", fit_jointnet) if cfg.jointnet_epochs else ("facing", fit_facing)
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=spawn) as pool:
+        net = pool.submit(fit_on_one_thread, fit, train_ann, params, cfg, log.getEffectiveLevel())
+        layers, layer_timings = grow_cascade(train_ann, items, cfg, params, mixtures, rng)
+        state, timings[name] = net.result()
+    timings.update(layer_timings)
+    timings["total"] = time.perf_counter() - t0
+    provenance = {
+        "data": {
+            "train": f"LSP train im0001-im{1000 - cfg.n_val:04d} + LSPet im00001-im10000"
+            + (f", {cfg.max_images} of them drawn with the seed" if cfg.max_images else ""),
+            "validation": f"LSP train im{1001 - cfg.n_val:04d}-im1000 (not trained on)",
+            "n_train_images": len(train_ann),
+            "terms": "LSP/LSPet: research use only (Johnson & Everingham, BMVC 2010, CVPR 2011)",
+        },
+        "seed": cfg.seed,
+        "train_config": asdict(cfg),
+    }
+    manifest = save_model(out_dir, layers, mixtures, {name: state}, params, provenance, timings)
+    if evaluate is not None:
+        manifest = record_metrics(out_dir, "validation", evaluate(out_dir))
+    return manifest

@@ -1,0 +1,47 @@
+"""`ds3d eval lsp` and the `--set` machinery (ds3d.cli)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from ds3d.cli import main as cli
+from ds3d.cli.parser import field_overrides
+from ds3d.image2d.params import EstimatorParams
+from ds3d.paths import MODELS_DIR, project_relative
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_path):
+    out = tmp_path / "val.json"
+    argv = ["lsp", "--model", str(small_model), "--split", "train", "--start", "990"]
+    argv += ["--set", "n_scales=2", "--out", str(out)]
+    assert cli(["eval", *argv]) == 0
+    report = json.loads(out.read_text())
+    assert report["dataset"] == "LSP train im0991-im1000" and report["n_images"] == 10
+    assert report["overrides"] == ["n_scales=2"]
+    assert report["model"] == str(small_model)  # outside the project: as given
+    assert project_relative(MODELS_DIR / "image2d") == "models/image2d"  # same on any checkout
+    for name in ("psm", "unary_argmax"):
+        assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
+    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "select_stride=none"]
+    assert field_overrides(EstimatorParams, overrides) == {
+        "observer_labels": False,
+        "stride": 4,
+        "unary_weight": 1.5,
+        "select_stride": None,
+    }
+    assert field_overrides(EstimatorParams, ["select_stride=6"]) == {"select_stride": 6}
+    with pytest.raises(SystemExit, match=re.escape("is not a int | None")):
+        field_overrides(EstimatorParams, ["select_stride=six"])
+    with pytest.raises(SystemExit, match="not a InferenceParams field"):
+        cli(["eval", "lsp", "--model", str(small_model), "--set", "n_scale=2"])
+    with pytest.raises(SystemExit, match="is not a bool"):
+        cli(["eval", "lsp", "--model", str(small_model), "--set", "flip_test=maybe"])
+    # What training fixed is not for inference to change: the models were grown for it.
+    with pytest.raises(SystemExit, match="not a InferenceParams field"):
+        cli(["eval", "lsp", "--model", str(small_model), "--set", "stride=4"])
+    with pytest.raises(ValueError, match="not an inference parameter: stride"):
+        EstimatorParams().with_inference(stride=4)

@@ -1,0 +1,170 @@
+"""The 2D estimator end to end on a small model trained here (ds3d.image2d.estimator)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from ds3d.errors import InvalidImage
+from ds3d.image2d import cascade
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.params import EstimatorParams
+from ds3d.image2d.result import LOG_EPS
+from ds3d.skeleton import FLIP
+from ds3d.threads import intra_op_threads
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_estimate_batches_of_mixed_images_and_boxes(small_model):
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (240, 320, 3))]
+    with intra_op_threads(1):  # one padded batch (more threads would split it)
+        res = est.estimate(images, bboxes=[None, (100, 40, 160, 200)])
+    assert res.joints_2d.shape == (2, 14, 2) and torch.isfinite(res.joints_2d).all()
+    assert res.joint_scores.shape == (2, 14) and res.score.shape == (2,)
+    assert res.unaries.shape[:2] == (2, 14) and (res.unaries <= 0).all()
+    # each joint's score is its own unary at some cell (not the PSM's weighted unary)
+    at_a_cell = torch.isclose(res.unaries.flatten(2), res.joint_scores[..., None]).any(-1)
+    assert at_a_cell.all()
+    assert set(res.timings) == {"features", "traversal", "jointnet", "psm", "total"}
+    # each image alone gives the same pose and unaries as in the batch (padding does not leak,
+    # not even into the cells at an image's right and bottom edges)
+    for i in range(2):
+        alone = est.estimate([images[i]], bboxes=[[None, (100, 40, 160, 200)][i]])
+        torch.testing.assert_close(alone.joints_2d[0], res.joints_2d[i])
+        h, w = alone.unaries.shape[-2:]
+        torch.testing.assert_close(alone.unaries[0], res.unaries[i, :, :h, :w])
+    # the box crop: joints land in the image, near the box
+    assert (res.joints_2d[1, :, 0] > 20).all() and (res.joints_2d[1, :, 0] < 240).all()
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threads_split_the_batch_without_changing_any_result(small_model, threads):
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(5)
+    shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
+    with intra_op_threads(1):
+        one = est.estimate(images)
+    with intra_op_threads(threads):
+        split = est.estimate(images)
+        assert torch.get_num_threads() == threads  # the caller's setting is left alone
+    for name in ("joints_2d", "joint_scores", "score", "unaries", "map_to_image", "scale"):
+        torch.testing.assert_close(getattr(split, name), getattr(one, name), rtol=0, atol=0)
+    assert set(split.timings) == {"features", "traversal", "jointnet", "psm", "total"}
+
+
+def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(6)
+    shapes = ((150, 90, 3), (240, 320, 3), (120, 130, 3), (90, 160, 3), (200, 100, 3))
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in shapes]
+    results = []
+    with intra_op_threads(1):
+        # one image per group; groups of 2-3 (4-6 MB per padded image here); all in one
+        for budget in (0, 10 * 2**20, 2**40):
+            monkeypatch.setattr(cascade, "GROUP_BYTES", budget)
+            results.append(est.estimate(images))
+    for res in results[:2]:
+        for name in ("joints_2d", "joint_scores", "score", "unaries", "facing_camera"):
+            expected = getattr(results[2], name)
+            torch.testing.assert_close(getattr(res, name), expected, rtol=0, atol=0)
+
+
+@pytest.mark.usefixtures("data_dir")
+@pytest.mark.parametrize("coarse_trees, flip_test", [(None, False), (2, True)])
+def test_coarse_pass_picks_the_scale_then_the_full_stride_answers(
+    small_model, coarse_trees, flip_test
+):
+    est = PoseEstimator2D.load(small_model)
+    est.params = replace(est.params, coarse_trees=coarse_trees, flip_test=flip_test)
+    p = est.params
+    assert (p.select_stride, p.stride, p.unary_blur) == (6, 3, 2)
+    rng = np.random.default_rng(4)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (120, 200, 3))]
+    res = est.estimate(images)
+    # blur 2 cells of 3 px; the coarse pass never runs the flip test
+    coarse = replace(p, stride=6, unary_blur=1, select_stride=None, flip_test=False)
+    # The coarse pass reads the first coarse_trees trees of each layer (all with None).
+    layers = [f.first_trees(coarse_trees or f.n_trees) for f in est.layers]
+    coarse = PoseEstimator2D(layers, est.mixtures, coarse)
+    for i, image in enumerate(images):
+        scores = [coarse.estimate([image], scales=[s]).score.item() for s in est.scales()]
+        chosen = est.scales()[int(np.argmax(scores))]
+        fine = est.estimate([image], scales=[chosen])
+        torch.testing.assert_close(fine.joints_2d[0], res.joints_2d[i])
+        torch.testing.assert_close(fine.score[0], res.score[i])
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_flip_test_makes_the_unaries_mirror_symmetric(small_model):
+    est = PoseEstimator2D.load(small_model)
+    # The flip test is the cascade's: the joint network's maps are not mirrored, so leave it out.
+    est.params = replace(est.params, flip_test=True, jointnet_weight=0.0)
+    # 135 px high: the base scale is 1, so the cascade sees the image as it is; (91 - 1) % 3 == 0:
+    # the grid of the mirror image is the image's own, mirrored.
+    image = np.random.default_rng(2).integers(0, 256, (135, 91, 3), dtype=np.uint8)
+    unaries = est.estimate([image], scales=[1.0]).unaries[0]
+    mirrored = est.estimate([image[:, ::-1].copy()], scales=[1.0]).unaries[0]
+    assert unaries.shape == (14, 45, 31)
+    # Probabilities, equal up to the rounding of the integral-image blur (features.box_mean).
+    torch.testing.assert_close(
+        mirrored.exp(), unaries[list(FLIP)].flip(-1).exp(), atol=1e-6, rtol=0
+    )
+    # Without it (the default) the cascade is not symmetric: the test has something to show.
+    est.params = replace(est.params, flip_test=False)
+    plain = est.estimate([image], scales=[1.0]).unaries[0].exp()
+    plain_mirrored = est.estimate([image[:, ::-1].copy()], scales=[1.0]).unaries[0].exp()
+    assert (plain_mirrored - plain[list(FLIP)].flip(-1)).abs().max() > 0.01
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_joints_move_from_their_map_cells_to_the_local_centroid_only(small_model):
+    est = PoseEstimator2D.load(small_model)
+    image = np.random.default_rng(5).integers(0, 256, (160, 100, 3), dtype=np.uint8)
+    est.params = replace(est.params, centroid_radius=None)
+    on_grid = est.estimate([image])
+    est.params = replace(est.params, centroid_radius=2)
+    moved = est.estimate([image])
+    # The centroid changes neither the MAP nor its score, nor the chosen scale.
+    torch.testing.assert_close(moved.score, on_grid.score)
+    torch.testing.assert_close(moved.map_to_image, on_grid.map_to_image)
+
+    def to_cells(est2d):  # image px -> unary cells (u, v)
+        a = torch.diagonal(est2d.map_to_image[0, :, :2])
+        return (est2d.joints_2d[0] - est2d.map_to_image[0, :, 2]) / a
+
+    cells = to_cells(on_grid)
+    torch.testing.assert_close(cells, cells.round(), atol=1e-4, rtol=0)  # MAP: on the grid
+    shift = (to_cells(moved) - cells).norm(dim=-1)
+    assert bool((shift <= 6**0.5 + 1e-4).all()) and bool((shift > 1e-3).any())
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_sample_unaries_reads_the_maps_at_image_points(small_model):
+    est = PoseEstimator2D.load(small_model)
+    image = np.random.default_rng(1).integers(0, 256, (160, 100, 3), dtype=np.uint8)
+    res = est.estimate([image])
+    # image points of a few cells, through map_to_image
+    cells = torch.tensor([[2.0, 3.0], [5.0, 1.0], [0.0, 0.0]])
+    uv1 = torch.cat([cells, torch.ones(3, 1)], 1)
+    points = (res.map_to_image[0] @ uv1.T).T  # (3, 2)
+    sampled = res.sample_unaries(points[None, :, None, :].expand(1, 3, 14, 2))  # (1, 3, 14)
+    for k, (u, v) in enumerate(cells.long().tolist()):
+        torch.testing.assert_close(sampled[0, k], res.unaries[0, :, v, u])
+    far = res.sample_unaries(torch.full((1, 1, 14, 2), -500.0))
+    torch.testing.assert_close(far, torch.full((1, 1, 14), float(np.log(LOG_EPS))))
+
+
+def test_estimate_rejects_bad_inputs():
+    est = PoseEstimator2D([], None, EstimatorParams())
+    with pytest.raises(ValueError):
+        est.estimate([])
+    with pytest.raises(InvalidImage):
+        est.estimate([np.zeros((10, 10), dtype=np.uint8)])
+    with pytest.raises(ValueError):
+        est.estimate([np.zeros((10, 10, 3), dtype=np.uint8)], bboxes=[(5, 5, 2, 2)])

@@ -1,0 +1,48 @@
+"""The joint network (ds3d.image2d.jointnet): its grid mapping and output."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ds3d.image2d.jointnet import MARGIN, STRIDE, JointNet, logits_on_grid, spatial_softmax
+from ds3d.skeleton import NUM_JOINTS
+
+
+def test_grid_cells_read_the_output_cell_under_their_pixel():
+    lab = torch.zeros(1, 3, 48, 40)
+    grid = logits_on_grid(_Ramp(), lab, stride=3)
+    assert grid.shape == (1, NUM_JOINTS, 16, 14)
+    i, j = torch.meshgrid(torch.arange(16.0), torch.arange(14.0), indexing="ij")
+    # Pixel (3 i, 3 j) is output cell ((3 i + MARGIN) / 4, (3 j + MARGIN) / 4) of the image in
+    # its margin (48 + 2 MARGIN px high, 40 + 2 MARGIN wide).
+    last_u, last_v = (40 + 2 * MARGIN) // STRIDE - 1, (48 + 2 * MARGIN) // STRIDE - 1
+    want = ((3 * j + MARGIN) / STRIDE).clamp(max=last_u)
+    want = want + 100 * ((3 * i + MARGIN) / STRIDE).clamp(max=last_v)
+    torch.testing.assert_close(grid[0, 2], want + 2)
+
+
+def test_spatial_softmax_is_a_distribution_over_the_cells():
+    logits = torch.randn(2, NUM_JOINTS, 5, 6)
+    probs = spatial_softmax(logits)
+    torch.testing.assert_close(probs.sum((2, 3)), torch.ones(2, NUM_JOINTS))
+    assert probs[0, 3].argmax() == logits[0, 3].argmax()
+
+
+def test_network_output_is_a_quarter_of_the_input_rounded_up():
+    net = JointNet().eval()
+    with torch.no_grad():
+        assert net(torch.zeros(1, 3, 50, 37)).shape == (1, NUM_JOINTS, 13, 10)
+
+
+class _Ramp(nn.Module):
+    """Output cell (u, v) of channel c holds u + 100 v + c: where a grid cell reads from (u, v
+    counted from the margin's corner)."""
+
+    def forward(self, lab):
+        b, _, h, w = lab.shape
+        u = torch.arange(-(-w // STRIDE), dtype=torch.float32)
+        v = torch.arange(-(-h // STRIDE), dtype=torch.float32)
+        c = torch.arange(NUM_JOINTS, dtype=torch.float32)
+        ramp = u[None, None, :] + 100 * v[None, :, None] + c[:, None, None]
+        return ramp.expand(b, -1, -1, -1)

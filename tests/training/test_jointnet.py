@@ -1,0 +1,77 @@
+"""Training of the joint network (ds3d.training.jointnet): its views, targets and loss."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ds3d.image2d.jointnet import JointNet
+from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.training import jointnet as jointnet_training
+from ds3d.training.jointnet import WINDOW, augment, jointnet_loss, soft_targets
+
+
+def test_views_carry_their_joints_with_them():
+    """A bright dot planted at joint 0 of a window lands where augment puts the joint, with the
+    joint relabelled by FLIP in mirrored views."""
+    torch.manual_seed(0)
+    b = 32
+    windows = torch.zeros(b, 3, WINDOW, WINDOW, dtype=torch.float16)
+    joints = torch.full((b, NUM_JOINTS, 2), (WINDOW - 1) / 2)
+    joints[:, 0] = torch.tensor([70.0, 100.0])
+    windows[:, 0, 99:102, 69:72] = 1.0  # around (x, y) = (70, 100)
+    views, pts, known = augment(windows, joints, torch.ones(b, NUM_JOINTS, dtype=torch.bool))
+    mirrored = 0
+    for k in range(b):
+        lightness = views[k, 0]
+        y, x = divmod(int(lightness.argmax()), lightness.shape[1])
+        # Joint 0 (right ankle) becomes FLIP[0] (left ankle) in a mirrored view.
+        label = 0 if known[k, 0] and math.dist(pts[k, 0].tolist(), (x, y)) < 1.5 else FLIP[0]
+        assert math.dist(pts[k, label].tolist(), (x, y)) < 1.5, (k, pts[k, label], (x, y))
+        mirrored += label != 0
+    assert 0 < mirrored < b
+
+
+def test_targets_are_distributions_peaked_at_the_joint_and_never_nan():
+    joints = torch.tensor([[[4.0 * 5, 4.0 * 7], [1e4, 1e4]]])  # cell (5, 7); far off the grid
+    t = soft_targets(joints, 16)
+    assert t.shape == (1, 2, 256)
+    torch.testing.assert_close(t[0, 0].sum(), torch.tensor(1.0))
+    assert int(t[0, 0].argmax()) == 7 * 16 + 5
+    assert not torch.isnan(t).any() and t[0, 1].sum() == 0
+
+
+def test_loss_counts_only_masked_joints_and_learns():
+    torch.manual_seed(0)
+    logits = torch.zeros(2, NUM_JOINTS, 8, 8, requires_grad=True)
+    joints = torch.full((2, NUM_JOINTS, 2), 12.0)
+    mask = torch.zeros(2, NUM_JOINTS, dtype=torch.bool)
+    mask[0, 3] = True
+    loss = jointnet_loss(logits, joints, mask)
+    torch.testing.assert_close(loss, torch.tensor(math.log(64.0)))  # uniform against any target
+    loss.backward()
+    grad = logits.grad
+    assert grad[0, 3].abs().sum() > 0 and grad[1].abs().sum() == 0 and grad[0, 2].abs().sum() == 0
+    assert grad[0, 3, 3, 3] < 0  # the joint's cell (12 / STRIDE = 3) is pushed up
+
+
+def test_training_lowers_the_loss_on_a_few_windows():
+    torch.manual_seed(1)
+    windows = torch.rand(8, 3, WINDOW, WINDOW).half()
+    joints = torch.rand(8, NUM_JOINTS, 2) * 60 + 58
+    for k in range(8):  # a bright blob marks the head top
+        x, y = joints[k, 13].round().long().tolist()
+        windows[k, 0, y - 3 : y + 4, x - 3 : x + 4] = 3.0
+    located = torch.ones(8, NUM_JOINTS, dtype=torch.bool)
+    before = _loss(JointNet().eval(), windows, joints, located)
+    net = jointnet_training.train_jointnet(windows, joints, located, epochs=30, lr=3e-3, seed=0)
+    assert _loss(net, windows, joints, located) < before - 0.5
+
+
+def _loss(net, windows, joints, located):
+    torch.manual_seed(5)
+    views, pts, mask = augment(windows, joints, located)
+    mask[:, :13] = False  # the head top alone has a cue
+    with torch.no_grad():
+        return float(jointnet_loss(net(views), pts, mask))
