@@ -3,6 +3,7 @@
 # model (one model thread), run closed-loop tests at several concurrencies, stop it.
 #   docker/loadtest_matrix.sh [DURATION_S] [OUT_DIR]
 #   ENDPOINT=pose IMAGES=../shared/data/lsp/images docker/loadtest_matrix.sh   # real images
+#   (IMAGES: a folder of images, or a quoted glob such as '../photos/*.jpg')
 # Results: OUT_DIR/{ENDPOINT}_closed_c{N}_b{B}.json (+ .png); summary lines on stdout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,7 +13,7 @@ PORT=${PORT:-8765}
 PY=${PY:-.venv/bin/python}
 ENDPOINT=${ENDPOINT:-lift}
 IMAGE_ARGS=()
-[ "$ENDPOINT" = pose ] && IMAGE_ARGS=(--images "${IMAGES:?set IMAGES to a folder of images}")
+[ "$ENDPOINT" = pose ] && IMAGE_ARGS=(--images "${IMAGES:?set IMAGES to a folder or glob of images}")
 export OMP_NUM_THREADS=1
 
 for B in ${BATCH_SIZES:-1 16}; do

@@ -63,6 +63,19 @@ class PoseOutput:
     batch: BatchInfo
 
 
+def request_timings_ms(
+    outputs: Sequence[LiftOutput | PoseOutput], total_s: float
+) -> dict[str, float]:
+    """A request's timings: per-stage ms summed over the distinct library calls its outputs ran
+    in (items that shared a call count it once), plus the request's total."""
+    stages: dict[str, float] = {}
+    for info in {o.batch.call_id: o.batch for o in outputs}.values():
+        for stage, ms in info.timings_ms.items():
+            stages[stage] = stages.get(stage, 0.0) + ms
+    stages["total"] = total_s * 1000.0
+    return stages
+
+
 def _numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 

@@ -2,12 +2,14 @@
 
     python -m service.loadtest http://127.0.0.1:8000 --mode closed --concurrency 16 --duration 30
     python -m service.loadtest http://127.0.0.1:8000 --mode open --rate 50 --duration 30
-    python -m service.loadtest URL --endpoint pose --images DIR ...
+    python -m service.loadtest URL --endpoint pose --images DIR_OR_GLOB ...
 
 Closed loop: N workers, each sends its next request when the previous one is answered.
 Open loop: requests start at a fixed rate whether or not earlier ones were answered (this is how
-overload shows). /v1/lift payloads are real 2D poses, random LSP annotations
-(data_root()/lsp/joints.mat); /v1/pose payloads are the image files of a folder.
+overload shows). /v1/lift payloads are real 2D poses, random LSP annotations (joints.mat of
+--lsp-root, default data_root()/lsp); /v1/pose payloads are image files, those of the folder or
+those matching the glob that --images gives. The tool reads these files itself: it needs none of
+the library's dataset readers.
 Raw httpx, no retries: every status is counted as the service gave it. Prints and writes JSON
 (throughput, latency percentiles, counts by status) and a PNG of latency over time.
 Bounded: at most --max-requests requests and --duration seconds (plus the last answers); only
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import glob
 import json
 import random
 import sys
@@ -54,10 +57,38 @@ def lift_payloads(poses: tuple[np.ndarray, np.ndarray], items: int, count: int, 
     return bodies
 
 
-def image_payloads(folder: Path, limit: int) -> list[tuple[str, bytes]]:
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
+def lsp_poses(lsp_root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The annotations of LSP's joints.mat: joints_2d (N, 14, 2) float32, 0-based pixels, and
+    visible (N, 14) bool; converted as ds3d.data.lsp converts them (a test holds the two equal)."""
+    from scipy.io import loadmat
+
+    path = lsp_root / "joints.mat"
+    if not path.is_file():
+        raise SystemExit(f"no LSP annotations at {path} (give --lsp-root)")
+    joints = np.asarray(loadmat(str(path))["joints"], dtype=np.float64)
+    if joints.ndim != 3 or joints.shape[:2] != (3, 14):
+        raise SystemExit(f"{path}: 'joints' has shape {joints.shape}, expected (3, 14, N)")
+    # (3, 14, N) rows x, y, flag: MATLAB's 1-based pixels, and flag 0 where the joint is visible.
+    xy = (np.transpose(joints[:2], (2, 1, 0)) - 1.0).astype(np.float32)
+    visible = np.transpose(joints[2]) == 0
+    return xy, visible
+
+
+def image_files(source: str | Path) -> list[Path]:
+    """The image files (by suffix) in the folder `source`, or matching the glob pattern `source`
+    ("**" descends into folders), sorted."""
+    folder = Path(source)
+    found = (
+        folder.iterdir() if folder.is_dir() else map(Path, glob.glob(str(source), recursive=True))
+    )
+    return sorted(p for p in found if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def image_payloads(source: str | Path, limit: int) -> list[tuple[str, bytes]]:
+    """(file name, bytes) of the first `limit` image files of `source` (see image_files)."""
+    files = image_files(source)[:limit]
     if not files:
-        raise SystemExit(f"no images in {folder}")
+        raise SystemExit(f"no images in {source}")
     return [(p.name, p.read_bytes()) for p in files]
 
 
@@ -186,13 +217,13 @@ async def open_loop(runner: Runner, rate: float, duration_s: float, max_requests
 
 async def run(args) -> tuple[dict, list[Sample]]:
     if args.endpoint == "lift":
-        from ds3d.data.lsp import load_lsp
+        from ds3d.paths import data_root
 
-        lsp = load_lsp(args.lsp_root)
-        payloads = lift_payloads((lsp.joints, lsp.visible), args.items, 512, args.seed)
+        poses = lsp_poses(args.lsp_root or data_root() / "lsp")
+        payloads = lift_payloads(poses, args.items, 512, args.seed)
     else:
         if args.images is None:
-            raise SystemExit("--endpoint pose needs --images DIR")
+            raise SystemExit("--endpoint pose needs --images DIR_OR_GLOB")
         payloads = image_payloads(args.images, 256)
     limits = httpx.Limits(max_connections=args.max_connections, max_keepalive_connections=64)
     async with httpx.AsyncClient(base_url=args.url, timeout=args.timeout, limits=limits) as client:
@@ -234,7 +265,11 @@ def parse_args(argv):
     p.add_argument("--max-requests", type=int, default=100_000)
     p.add_argument("--items", type=int, default=1, help="lift: poses per request")
     p.add_argument("--lsp-root", type=Path, help="LSP folder (default: data_root()/lsp)")
-    p.add_argument("--images", type=Path, help="pose: folder of images")
+    p.add_argument(
+        "--images",
+        metavar="DIR_OR_GLOB",
+        help="pose: a folder of images, or a glob of image files (quoted, e.g. 'photos/*.jpg')",
+    )
     p.add_argument("--timeout", type=float, default=30.0, help="client timeout per request (s)")
     p.add_argument("--max-connections", type=int, default=512)
     p.add_argument("--deadline", type=float, help="count answers slower than this (s)")

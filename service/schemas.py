@@ -82,3 +82,16 @@ class Health(BaseModel):
     model: str | None = None
     queue_depth: int | None = None
     pose_available: bool | None = None
+
+
+# The error answers of the model routes, as their OpenAPI lists them.
+ERROR_RESPONSES = {
+    status: {"model": ErrorResponse, "description": what}
+    for status, what in {
+        413: "body or image over the size limit",
+        415: "unsupported content type",
+        422: "invalid input (malformed JSON, wrong joint count, non-finite numbers, bad image)",
+        503: "queue full, shutting down, or model unavailable (see Retry-After)",
+        504: "not answered before the request deadline",
+    }.items()
+}

@@ -1,6 +1,6 @@
 """The client SDK on its own: request encoding, error decoding, the retry policy, and that it
 imports neither torch, faiss nor fastapi. Responses come from an httpx MockTransport (the
-transport layer, not a model); the SDK against the real service is in test_service.py."""
+transport layer, not a model); the SDK against the real service is in test_app.py."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import io
 import json
 import subprocess
 import sys
+import time
 
 import httpx
 import numpy as np
@@ -103,12 +104,20 @@ def test_other_errors_are_not_retried():
     assert len(calls) == 1 and info.value.code == "invalid_pose"
 
 
-def test_retry_after_sets_the_wait():
-    client = PoseClient("http://svc", retries=1, backoff_s=0.0)
-    resp = httpx.Response(503, headers={"Retry-After": "2"})
-    assert client._proto.retry_delay(0, resp) == 2.0
-    assert client._proto.retry_delay(1, resp) is None  # retries spent
-    assert client._proto.retry_delay(0, httpx.Response(504)) is None
+def test_retry_after_sets_the_wait(monkeypatch):
+    waits: list[float] = []
+    monkeypatch.setattr(time, "sleep", waits.append)  # record the waits instead of sleeping
+    busy = Flaky(fails=10, retry_after="2")
+    client = PoseClient("http://svc", retries=1, backoff_s=0.0, transport=httpx.MockTransport(busy))
+    with pytest.raises(ServiceError):
+        client.lift(np.zeros((14, 2)))
+    assert waits == [2.0]  # Retry-After, not the (zero) backoff; then the retries were spent
+    assert busy.calls == 2
+    timeout = httpx.MockTransport(lambda request: httpx.Response(504))
+    client = PoseClient("http://svc", retries=1, backoff_s=0.0, transport=timeout)
+    with pytest.raises(ServiceError):
+        client.lift(np.zeros((14, 2)))
+    assert waits == [2.0]  # a 504 is not waited on: no retry
 
 
 def test_async_twin_shares_the_behaviour():

@@ -1,0 +1,59 @@
+"""The dependencies routes declare (FastAPI `Depends`): the app's settings, its metrics and its
+loaded models, each read from `request.app.state`, where `create_app` and its lifespan put them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import Depends, Request
+from starlette.datastructures import State
+
+from service.batching import MicroBatcher
+from service.engine import Engine, LiftInput, LiftOutput, PoseInput, PoseOutput
+from service.errors import ApiError
+from service.metrics import Metrics
+from service.settings import Settings
+
+
+@dataclass
+class Runtime:
+    """What the lifespan loads: the engine and one batcher per model queue."""
+
+    engine: Engine
+    lift: MicroBatcher[LiftInput, LiftOutput]
+    pose: MicroBatcher[PoseInput, PoseOutput] | None
+
+
+class RuntimeHandle:
+    """The app's Runtime as a route sees it. Routes call `require()` at the point where they need
+    the models, after checking their input, so that a bad request gets its own answer even
+    while the models are loading (or were never loaded, as in an app run without lifespan)."""
+
+    def __init__(self, state: State):
+        self._state = state
+
+    def require(self) -> Runtime:
+        """The loaded Runtime, or ApiError 503 not_ready (with Retry-After) while there is none."""
+        runtime = getattr(self._state, "runtime", None)
+        if runtime is None:
+            retry_after = {"Retry-After": str(self._state.settings.retry_after_s)}
+            raise ApiError(503, "not_ready", "the model is loading", retry_after)
+        return runtime
+
+
+async def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+async def get_metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
+
+
+async def get_runtime_handle(request: Request) -> RuntimeHandle:
+    return RuntimeHandle(request.app.state)
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+RuntimeHandleDep = Annotated[RuntimeHandle, Depends(get_runtime_handle)]

@@ -1,0 +1,69 @@
+"""POST /v1/lift: 2D poses (pixels) in, 3D poses (millimetres) out, through the lift batcher."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from fastapi import APIRouter, Depends, Request
+
+from ds3d.skeleton import JOINT_NAMES, NUM_JOINTS
+from service.deps import RuntimeHandleDep, SettingsDep
+from service.engine import LiftInput, request_timings_ms
+from service.errors import ApiError
+from service.schemas import ERROR_RESPONSES, LiftRequest, LiftResponse, LiftResult
+
+router = APIRouter()
+
+
+def require_json(request: Request) -> None:
+    ctype = request.headers.get("content-type", "")
+    if ctype.split(";")[0].strip().lower() != "application/json":
+        raise ApiError(415, "unsupported_media_type", "send the body as application/json")
+
+
+def lift_inputs(body: LiftRequest) -> list[LiftInput]:
+    """The batcher's items of a validated request; 422 invalid_pose for numbers beyond float32."""
+    items = []
+    for i, item in enumerate(body.items):
+        with np.errstate(over="ignore"):  # overflow is caught by the check below
+            joints = np.asarray(item.joints_2d, dtype=np.float32)
+            k = None if item.intrinsics is None else np.asarray(item.intrinsics, dtype=np.float32)
+        # Finite doubles can overflow float32 (1e39): check after the cast.
+        if not np.isfinite(joints).all() or (k is not None and not np.isfinite(k).all()):
+            raise ApiError(422, "invalid_pose", f"items[{i}]: numbers out of float32 range")
+        visible = (
+            np.ones(NUM_JOINTS, dtype=bool)
+            if item.visible is None
+            else np.asarray(item.visible, dtype=bool)
+        )
+        items.append(LiftInput(joints, visible, k))
+    return items
+
+
+@router.post(
+    "/v1/lift",
+    response_model=LiftResponse,
+    responses=ERROR_RESPONSES,
+    dependencies=[Depends(require_json)],
+)
+async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleDep) -> LiftResponse:
+    """Lift 2D poses (pixels) to 3D (millimetres). Items are answered in order; each is one
+    element of a model batch shared with other requests."""
+    t0 = time.perf_counter()
+    rt = runtime.require()
+    # A request larger than the whole queue could never be taken: 413, not a 503 to retry.
+    most = min(settings.max_lift_items, settings.max_queue)
+    if len(body.items) > most:
+        why = f"{len(body.items)} items, at most {most}"
+        raise ApiError(413, "too_many_items", why)
+    outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s)
+    return LiftResponse(
+        items=[
+            LiftResult(joints_3d=o.joints_3d.tolist(), joint_set=o.joint_set, energy=o.energy)
+            for o in outputs
+        ],
+        joint_names=list(JOINT_NAMES),
+        model=rt.engine.model_id,
+        timings_ms=request_timings_ms(outputs, time.perf_counter() - t0),
+    )
