@@ -3,7 +3,8 @@
 # model (one model thread), run closed-loop tests at several concurrencies, stop it.
 #   docker/loadtest_matrix.sh [DURATION_S] [OUT_DIR]
 #   ENDPOINT=pose IMAGES=../shared/data/lsp/images docker/loadtest_matrix.sh   # real images
-#   (IMAGES: a folder of images, or a quoted glob such as '../photos/*.jpg')
+#   (IMAGES: a folder of images, or a quoted glob such as '../photos/*.jpg'; for lift, POSES=FILE
+#   in `ds3d lift`'s input format, default LSP's annotations written to OUT_DIR/lsp_poses.json)
 # Results: OUT_DIR/{ENDPOINT}_closed_c{N}_b{B}.json (+ .png); summary lines on stdout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,8 +13,15 @@ OUT=${2:-out/loadtest}
 PORT=${PORT:-8765}
 PY=${PY:-.venv/bin/python}
 ENDPOINT=${ENDPOINT:-lift}
-IMAGE_ARGS=()
-[ "$ENDPOINT" = pose ] && IMAGE_ARGS=(--images "${IMAGES:?set IMAGES to a folder or glob of images}")
+mkdir -p "$OUT"
+if [ "$ENDPOINT" = pose ]; then
+    INPUT_ARGS=(--images "${IMAGES:?set IMAGES to a folder or glob of images}")
+else  # LSP's 2000 annotated poses, or POSES=FILE in `ds3d lift`'s input format
+    POSES=${POSES:-$OUT/lsp_poses.json}
+    [ -f "$POSES" ] || $PY -c 'import json, sys; from ds3d.data.lsp import load_lsp; a = load_lsp()
+json.dump({"joints_2d": a.joints.tolist(), "visible": a.visible.tolist()}, open(sys.argv[1], "w"))' "$POSES"
+    INPUT_ARGS=(--poses "$POSES")
+fi
 export OMP_NUM_THREADS=1
 
 for B in ${BATCH_SIZES:-1 16}; do
@@ -26,7 +34,7 @@ for B in ${BATCH_SIZES:-1 16}; do
         sleep 1
     done
     for C in ${CONCURRENCIES:-1 4 16 64}; do
-        $PY -m service.loadtest "http://127.0.0.1:$PORT" --endpoint "$ENDPOINT" "${IMAGE_ARGS[@]}" \
+        $PY -m service.loadtest "http://127.0.0.1:$PORT" --endpoint "$ENDPOINT" "${INPUT_ARGS[@]}" \
             --mode closed --concurrency "$C" --duration "$DURATION" --out "$OUT" \
             --name "${ENDPOINT}_closed_c${C}_b${B}" --deadline 10 \
             | $PY -c "import json,sys; d=json.load(sys.stdin); l=d['latency_ms_ok'] or {}; \

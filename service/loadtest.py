@@ -6,10 +6,10 @@
 
 Closed loop: N workers, each sends its next request when the previous one is answered.
 Open loop: requests start at a fixed rate whether or not earlier ones were answered (this is how
-overload shows). /v1/lift payloads are real 2D poses, random LSP annotations (joints.mat of
---lsp-root, default data_root()/lsp); /v1/pose payloads are image files, those of the folder or
-those matching the glob that --images gives. The tool reads these files itself: it needs none of
-the library's dataset readers.
+overload shows). /v1/lift payloads are random poses of the --poses file (`ds3d lift`'s input
+format; docker/loadtest_matrix.sh writes LSP's annotations to one); /v1/pose payloads are image
+files, those of the folder or those matching the glob that --images gives. The tool is a client:
+it imports nothing of the library.
 Raw httpx, no retries: every status is counted as the service gave it. Prints and writes JSON
 (throughput, latency percentiles, counts by status) and a PNG of latency over time.
 Bounded: at most --max-requests requests and --duration seconds (plus the last answers); only
@@ -57,20 +57,18 @@ def lift_payloads(poses: tuple[np.ndarray, np.ndarray], items: int, count: int, 
     return bodies
 
 
-def lsp_poses(lsp_root: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The annotations of LSP's joints.mat: joints_2d (N, 14, 2) float32, 0-based pixels, and
-    visible (N, 14) bool; converted as ds3d.data.lsp converts them (a test holds the two equal)."""
-    from scipy.io import loadmat
-
-    path = lsp_root / "joints.mat"
-    if not path.is_file():
-        raise SystemExit(f"no LSP annotations at {path} (give --lsp-root)")
-    joints = np.asarray(loadmat(str(path))["joints"], dtype=np.float64)
-    if joints.ndim != 3 or joints.shape[:2] != (3, 14):
-        raise SystemExit(f"{path}: 'joints' has shape {joints.shape}, expected (3, 14, N)")
-    # (3, 14, N) rows x, y, flag: MATLAB's 1-based pixels, and flag 0 where the joint is visible.
-    xy = (np.transpose(joints[:2], (2, 1, 0)) - 1.0).astype(np.float32)
-    visible = np.transpose(joints[2]) == 0
+def read_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """2D poses from a JSON file in `ds3d lift`'s input format: {"joints_2d": [[[x, y] x 14],
+    ...], "visible": optional [[bool x 14], ...]} -> joints_2d (N, 14, 2) float32 px, visible
+    (N, 14) bool (all true without "visible")."""
+    try:
+        data = json.loads(Path(path).read_text())
+        xy = np.asarray(data["joints_2d"], dtype=np.float32)
+        visible = np.asarray(data.get("visible", np.ones(xy.shape[:2])), dtype=bool)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"--poses {path}: {exc}") from None
+    if xy.ndim != 3 or xy.shape[1:] != (14, 2) or visible.shape != xy.shape[:2] or not len(xy):
+        raise SystemExit(f"--poses {path}: need joints_2d of shape (N, 14, 2), visible (N, 14)")
     return xy, visible
 
 
@@ -217,10 +215,9 @@ async def open_loop(runner: Runner, rate: float, duration_s: float, max_requests
 
 async def run(args) -> tuple[dict, list[Sample]]:
     if args.endpoint == "lift":
-        from ds3d.paths import data_root
-
-        poses = lsp_poses(args.lsp_root or data_root() / "lsp")
-        payloads = lift_payloads(poses, args.items, 512, args.seed)
+        if args.poses is None:
+            raise SystemExit("--endpoint lift needs --poses FILE")
+        payloads = lift_payloads(read_poses(args.poses), args.items, 512, args.seed)
     else:
         if args.images is None:
             raise SystemExit("--endpoint pose needs --images DIR_OR_GLOB")
@@ -264,7 +261,12 @@ def parse_args(argv):
     p.add_argument("--duration", type=float, default=10.0, help="seconds of load (max 600)")
     p.add_argument("--max-requests", type=int, default=100_000)
     p.add_argument("--items", type=int, default=1, help="lift: poses per request")
-    p.add_argument("--lsp-root", type=Path, help="LSP folder (default: data_root()/lsp)")
+    p.add_argument(
+        "--poses",
+        type=Path,
+        metavar="FILE",
+        help='lift: 2D poses, JSON as `ds3d lift` reads it ({"joints_2d": [...], "visible": ...})',
+    )
     p.add_argument(
         "--images",
         metavar="DIR_OR_GLOB",

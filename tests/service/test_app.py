@@ -356,8 +356,10 @@ def test_shutdown_answers_the_queued_requests(engine, poses):
 def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
     from service import loadtest
 
-    args = [url, "--concurrency", "2", "--duration", "1", "--out", str(tmp_path), "--name", "t"]
-    assert loadtest.main(args) == 0
+    poses_file = tmp_path / "poses.json"
+    poses_file.write_text(json.dumps({"joints_2d": poses.tolist()}))
+    args = [url, "--poses", str(poses_file), "--concurrency", "2", "--duration", "1"]
+    assert loadtest.main([*args, "--out", str(tmp_path), "--name", "t"]) == 0
     report = json.loads((tmp_path / "t.json").read_text())
     assert report["status_counts"].get("200", 0) >= 1 and report["health_after"]["/healthz"] == 200
     assert report["latency_ms_ok"]["p50"] > 0 and (tmp_path / "t.png").stat().st_size > 0

@@ -1,13 +1,14 @@
-"""The load-test tool's inputs: image files from a folder or a glob, and its own reading of the
-LSP annotations, which must give what ds3d.data.lsp gives. The tool against a real service is in
-test_app.py."""
+"""The load-test tool's inputs: image files from a folder or a glob, and 2D poses from a file in
+`ds3d lift`'s input format. The tool against a real service is in test_app.py."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
-from service.loadtest import image_files, image_payloads, lsp_poses
+from service.loadtest import image_files, image_payloads, read_poses
 
 
 def test_images_come_from_a_folder_or_a_glob(tmp_path):
@@ -22,10 +23,13 @@ def test_images_come_from_a_folder_or_a_glob(tmp_path):
         image_payloads(str(tmp_path / "*.bmp"), 1)
 
 
-def test_lsp_poses_match_the_library_reader(data_dir):
-    from ds3d.data.lsp import load_lsp
-
-    xy, visible = lsp_poses(data_dir / "lsp")
-    lsp = load_lsp(data_dir / "lsp")
-    np.testing.assert_array_equal(xy, lsp.joints)
-    np.testing.assert_array_equal(visible, lsp.visible)
+def test_poses_come_from_a_lift_input_file(tmp_path):
+    path = tmp_path / "poses.json"
+    joints = np.arange(2 * 14 * 2, dtype=np.float32).reshape(2, 14, 2)
+    path.write_text(json.dumps({"joints_2d": joints.tolist()}))
+    xy, visible = read_poses(path)
+    np.testing.assert_array_equal(xy, joints)
+    assert visible.shape == (2, 14) and visible.all()
+    path.write_text(json.dumps({"joints_2d": joints[:, :3].tolist()}))
+    with pytest.raises(SystemExit, match="shape"):
+        read_poses(path)
