@@ -39,24 +39,23 @@ class LifterConfig:
     """Algorithm parameters; the defaults are the paper's (K, K_w, PCA, omegas)."""
 
     neighbours: int = 256  # K
-    nprobe: int = 8  # IVF lists searched: recall@256 >= 0.94, 0.1 mm from exact (RESULTS.md)
+    nprobe: int = 8  # IVF lists searched: near-exact neighbours (docs/RESULTS.md, retrieval)
     weighted_neighbours: int = 64  # K_w; equal to K for the unweighted variant
     weighting: bool = True  # False: all K neighbours with weight 1 (the paper's ablation)
     pca_components: int = 18
     joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
     omega: EnergyWeights = field(default_factory=EnergyWeights)
-    projection_iterations: int = 5  # L-BFGS steps of eq:projerr1 (20 gain 0.2 mm: RESULTS.md)
+    projection_iterations: int = 5  # L-BFGS steps of eq:projerr1 (more gain next to nothing)
     pose_iterations: int = 15  # L-BFGS steps of eq:energyMin2
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
-    # own joints, as written, which lets small sets win by fitting fewer joints (RESULTS.md).
+    # own joints, as written, which lets small sets win by fitting fewer joints.
     select_on_all_joints: bool = True
     index: IndexConfig = field(default_factory=IndexConfig)
 
 
 # Poses per batch below which fit_projections fits every set in one call: each L-BFGS call costs
-# tens of small ops per step, whatever its size. Per image, on one thread, with the pipeline's
-# 2 iterations: 108-113 ms one call per set against 41-44 ms one call for all at batch 1, 63 / 32
-# at 2, 39-41 / 26-27 at 4, 27 / 25 at 8, 21 / 25 at 16 (a development script, stop 15).
+# tens of small ops per step, whatever its size, so small batches are bound by the calls'
+# overhead, large ones by the work (the crossover: docs/RESULTS.md, "How parameters were chosen").
 ONE_FIT_BELOW = 8
 
 

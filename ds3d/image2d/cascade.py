@@ -213,8 +213,7 @@ def unmirror(
 
 
 # Bytes of a traversal group's padded channel stack (pad_channels). Larger buffers are mmapped
-# afresh by malloc on every call and page-faulted in: a batch of 16 LSP images run as one group
-# was 1.2x slower than 4 at a time (docs/RESULTS.md).
+# afresh by malloc on every call and page-faulted in: several small groups beat one large one.
 GROUP_BYTES = 16 * 2**20
 
 

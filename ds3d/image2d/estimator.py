@@ -101,7 +101,7 @@ class PoseEstimator2D:
 
         With torch.get_num_threads() = N > 1, the batch is split into N parts run at once on N
         threads of one intra-op thread each: the traversal's gathers do not parallelise within
-        an op, but whole images do (2 threads: 1.6-1.9x at batch 16, docs/RESULTS.md;
+        an op, but whole images do (docs/RESULTS.md, 2D stage speed;
         ds3d.threads). Each image's result does not depend on the batch it is in, so neither
         does it on N. The step timings are then summed over the threads (CPU seconds); "total"
         is wall-clock.

@@ -1,14 +1,13 @@
 """A second unary: a small fully convolutional network that scores each joint's position.
 
 The paper's PSM takes its unaries from "any discriminative model" (SVMs in Yang and Ramanan,
-random forests in Dantone et al., which it follows). The forest cascade saturated near 40 %
-PCK@0.2 on LSP test against every growing knob tried (docs/RESULTS.md), and it cannot tell left
-from right: it reads pixels within 40 px of each one. This network sees the whole person
-(a receptive field of about 300 px at the working scale, where a person spans 100 px) and is
-trained on person-centric labels, so its maps carry which arm is the right one. The PSM sums
-both unaries (InferenceParams.jointnet_weight, left_right.left_right_hypotheses); the forests
-stay the paper's unary. On LSP test: 62.7 % PCK@0.2 with both, 40.4 % with the forests alone
-(docs/RESULTS.md).
+random forests in Dantone et al., which it follows). The forest cascade saturated against
+every growing knob tried, and it cannot tell left from right: it reads pixels within 40 px of
+each one. This network sees the whole person (a receptive field of about 300 px at the working
+scale, where a person spans 100 px) and is trained on person-centric labels, so its maps carry
+which arm is the right one. The PSM sums both unaries (InferenceParams.jointnet_weight,
+left_right.left_right_hypotheses); the forests stay the paper's unary. What each is worth:
+docs/RESULTS.md, 2D stage.
 
 Architecture (JointNet): two stride-2 3 x 3 convolutions to a quarter of the resolution, then
 residual blocks of dilated 3 x 3 convolutions (dilations 1, 2, 4, 8, 1), a 1 x 1 convolution to
@@ -80,7 +79,7 @@ def logits_on_grid(net: JointNet, lab: Tensor, stride: int) -> Tensor:
     lab (B, 3, H, W) Lab / 100 -> (B, 14, ceil(H / stride), ceil(W / stride)) float32.
 
     The image is run inside a MARGIN px border of zeros, as training windows extend past their
-    images (64.8 against 62.8 % PCK@0.2 on the held-out images, docs/RESULTS.md). Grid cell
+    images (its effect: docs/RESULTS.md). Grid cell
     (i, j) is pixel (stride * i, stride * j), so output cell ((stride * i + MARGIN) / STRIDE,
     (stride * j + MARGIN) / STRIDE): read bilinearly (past the last output cell, the last).
     bfloat16 on a CPU that computes it (CPU_BFLOAT16), as trained."""

@@ -14,7 +14,7 @@ class TrainConfig:
     n_val: int = 300  # last LSP train images held out for validation
     max_images: int | None = None  # cap on training images (small mode)
     trees: tuple[int, ...] = (16, 16)  # trees per cascade layer
-    images_per_tree: int = 4000  # of the ~5,350 in a layer's share; 2000 measured 2.5 points worse
+    images_per_tree: int = 4000  # of the ~5,350 in a layer's share (fewer score worse)
     pool_size: int = 512  # random comparisons offered to each tree
     radius: int = 40  # max offset of a comparison, px at the working scale
     pos_per_joint: int = 8
@@ -26,7 +26,6 @@ class TrainConfig:
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
-    # The paper has 15; on the 300 held-out images 3 scored best (C = 1 / 3 / 5 / 8 / 15: 38.2 /
-    # 40.2 / 39.2 / 38.2 / 39.0 % PCK@0.2), within the noise of 15 and with a 5x cheaper PSM.
+    # The paper has 15; 3 scores as well on the held-out images, with a 5x cheaper PSM.
     psm_components: int = 3
     psm_iterations: int = 50
