@@ -31,6 +31,7 @@ from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import JOINT_SETS, SET_NAMES, hip_midpoint, joint_set_mask
+from ds3d.threads import map_on_threads, split_rows
 from ds3d.timing import stage_timer
 
 
@@ -236,7 +237,8 @@ class Lifter:
         (B, S, 6). Returns params (B, S, 6) and residuals (B, S, K). Below ONE_FIT_BELOW poses,
         all B * S problems are one L-BFGS call on all 14 joints, the set's own masked; from it
         on, one call per set on its own joints only (a third less work than masking, which pays
-        once the work outweighs the calls' overhead)."""
+        once the work outweighs the calls' overhead), the sets shared out between the threads
+        (ds3d.threads: small L-BFGS ops gain little from intra-op threads, whole calls do)."""
         b, n_sets = candidates.shape[:2]
         joints_2d, visible, frame = query.joints_2d, query.visible, query.frame
         if b < ONE_FIT_BELOW:
@@ -249,20 +251,25 @@ class Lifter:
                 self.config.projection_iterations,
             )
             return params.view(b, n_sets, -1), residuals.view(b, n_sets, -1)
-        params, residuals = [], []
-        for s, name in enumerate(self.config.joint_sets):
-            joints = list(JOINT_SETS[name])
-            fitted, residual = fit_projection(
-                candidates[:, s][:, :, joints],
-                joints_2d[:, joints],
-                visible[:, joints].float(),
-                frame,
-                None if start is None else start[:, s],
-                self.config.projection_iterations,
-            )
-            params.append(fitted)
-            residuals.append(residual)
-        return torch.stack(params, 1), torch.stack(residuals, 1)
+
+        def fit_sets(sets: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+            out = []
+            for s in sets.tolist():
+                joints = list(JOINT_SETS[self.config.joint_sets[s]])
+                out.append(
+                    fit_projection(
+                        candidates[:, s][:, :, joints],
+                        joints_2d[:, joints],
+                        visible[:, joints].float(),
+                        frame,
+                        None if start is None else start[:, s],
+                        self.config.projection_iterations,
+                    )
+                )
+            return out
+
+        fitted = [fit for part in map_on_threads(fit_sets, split_rows(n_sets)) for fit in part]
+        return torch.stack([p for p, _ in fitted], 1), torch.stack([r for _, r in fitted], 1)
 
     def weight_neighbours(self, candidates, scores):
         """eq:wt/eq:wtn. candidates: (B, S, K, 14, 3); scores: (B, S, K), higher is better.

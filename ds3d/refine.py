@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
@@ -30,6 +31,10 @@ class RefineParams:
     min_var: float = 4.0
     window_margin: int = 4
     unary_weight: float = 1.0
+    # The PSMs run on the window max-pooled by this factor (a max-convolution costs the cube of
+    # the side); each joint then goes to its pooled block's best cell, then to its local
+    # centroid on the full grid (InferenceParams.joint_cells).
+    pool: int = 2
 
 
 def image_to_cells(points: torch.Tensor, map_to_image: torch.Tensor) -> torch.Tensor:
@@ -108,8 +113,12 @@ def refine(
     windows = [search_window(estimate.unaries[i], cells[i], config.window_margin) for i in range(b)]
     origin = torch.stack([o for _, o in windows])  # (B, 2)
     local = (cells - origin[:, None, None, :]).reshape(b * s, n, NUM_JOINTS, 2)
+    pool = config.pool
     mixtures = fit_pairwise_mixtures(
-        local, weights.reshape(b * s, n), n_components=config.components, min_var=config.min_var
+        (local - (pool - 1) / 2) / pool,  # in pooled cells: cell k covers cells pool k ...
+        weights.reshape(b * s, n),
+        n_components=config.components,
+        min_var=config.min_var / pool**2,
     )
 
     def solve(rows: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -117,14 +126,23 @@ def refine(
         out = []
         for i in rows.tolist():
             window, part = windows[i][0], slice(i * s, (i + 1) * s)
+            pooled, best = F.max_pool2d(window[None], pool, ceil_mode=True, return_indices=True)
             res = infer(
-                (unary_weight * window)[None].expand(s, -1, -1, -1),
+                (unary_weight * pooled).expand(s, -1, -1, -1),
                 PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
                 stride=1.0,
             )
-            out.append(
-                (params.joint_cells(window[None].expand(s, -1, -1, -1), res.cells), res.score)
+            # each joint's pooled cell -> the cell of the window its maximum came from
+            flat = (
+                best.flatten(2)
+                .expand(s, -1, -1)
+                .gather(2, (res.cells[..., 1] * pooled.shape[-1] + res.cells[..., 0])[..., None])[
+                    ..., 0
+                ]
             )
+            width = window.shape[-1]
+            fine = torch.stack([flat % width, flat // width], -1)
+            out.append((params.joint_cells(window[None].expand(s, -1, -1, -1), fine), res.score))
         return out
 
     # One image at a time (each its own window), so whole images go to parallel threads.

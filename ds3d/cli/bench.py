@@ -189,6 +189,7 @@ def bench_2d(args) -> int:
                 "threads": args.threads,
                 "scales": est.scales(),
                 "stride": est.params.stride,
+                "scale_choice": est.params.scale_choice,
                 "select_stride": est.params.select_stride,
                 "coarse_trees": est.params.coarse_trees,
                 "step_ms": "summed over the threads (CPU time); total is wall-clock",

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
-import time
+import shutil
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import torch
@@ -17,7 +18,7 @@ from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_
 from ds3d.image2d.params import EstimatorParams, InferenceParams
 from ds3d.paths import project_relative
 from ds3d.training.config import TrainConfig
-from ds3d.training.image2d import train
+from ds3d.training.image2d import CHECKPOINT_DIR, train
 from ds3d.training.images import training_annotations
 from ds3d.training.jointnet import fit_jointnet
 
@@ -36,6 +37,7 @@ SMALL = {
 }
 
 INFERENCE_OVERRIDE = "override an InferenceParams field of the model (e.g. n_scales=4)"
+RESUME = f"continue from the progress saved in the model folder's {CHECKPOINT_DIR}/"
 
 
 def register(commands, evals, benches) -> None:
@@ -51,6 +53,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    p.add_argument("--resume", action="store_true", help=RESUME)
     p.add_argument(
         "--observer-labels",
         action="store_true",
@@ -65,6 +68,8 @@ def register(commands, evals, benches) -> None:
     j.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
     j.add_argument("--threads", type=int, default=2)
     j.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
+    j.add_argument("--resume", action="store_true", help=RESUME)
+    add_set_option(j, "a TrainConfig jointnet_* field to train with (e.g. jointnet_epochs=40)")
     j.set_defaults(func=cmd_train_jointnet)
 
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
@@ -101,22 +106,30 @@ def cmd_train(args) -> int:
     overrides = field_overrides(EstimatorParams, args.set)
     params = EstimatorParams(**{"observer_labels": args.observer_labels, **overrides})
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
-    manifest = train(cfg, params, args.out, evaluate=evaluate)
+    manifest = train(cfg, params, args.out, evaluate=evaluate, resume=args.resume)
     print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
     return 0
 
 
 def cmd_train_jointnet(args) -> int:
     """Train the joint network on the training images of the model's own manifest (its seed,
-    held-out count and image cap) and add it to the model: what `train-2d` does beside the
-    forests, on --threads threads instead of one."""
+    held-out count and image cap) with the network's TrainConfig defaults (and --set), and put
+    it in the model: what `train-2d` does beside the forests, on --threads threads instead of
+    one. Progress is saved after every epoch; --resume continues from it."""
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     saved, params = training_setup(args.model)
-    cfg = TrainConfig(**{**saved, "trees": tuple(saved["trees"])})
-    t0 = time.perf_counter()
-    state = fit_jointnet(training_annotations(cfg)[0], params, cfg)
-    manifest = replace_jointnet(args.model, state, saved, time.perf_counter() - t0)
+    overrides = field_overrides(TrainConfig, args.set)
+    if any(not name.startswith("jointnet_") for name in overrides):
+        raise SystemExit("train-jointnet --set takes the jointnet_* fields of TrainConfig")
+    defaults = {f.name: f.default for f in fields(TrainConfig) if f.name.startswith("jointnet_")}
+    cfg = replace(TrainConfig.from_saved(saved), **defaults, **overrides)
+    checkpoint = args.model / CHECKPOINT_DIR / "jointnet.pt"
+    if not args.resume:
+        checkpoint.unlink(missing_ok=True)
+    state, seconds = fit_jointnet(training_annotations(cfg)[0], params, cfg, checkpoint)
+    manifest = replace_jointnet(args.model, state, cfg.jointnet_shape(), asdict(cfg), seconds)
+    shutil.rmtree(args.model / CHECKPOINT_DIR)
     if not args.no_eval:
         manifest = record_metrics(args.model, "validation", evaluate_validation(args.model, cfg))
     print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))

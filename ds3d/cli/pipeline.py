@@ -21,7 +21,7 @@ def register(commands, evals, benches) -> None:
         action="append",
         help="person box x,y,w,h in px; give it once per image, in order (default: whole image)",
     )
-    p.add_argument("--iterations", type=int, default=None, help="default: 2 (the paper's)")
+    p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
     p.add_argument("--out", type=Path, required=True, help="result JSON")
     p.add_argument("--render", type=Path, help="PNG; with several images, PATH-<i>.png for image i")
     add_model_options(p)

@@ -5,11 +5,11 @@ pictorial structure model (ds3d.image2d.psm) on each scale.
 Working scale. Training rescales every image so that the person's extent (the longer side of
 the box around its joints) is `canonical_extent` pixels; the PSM's offsets are learnt at that
 scale. At inference an image (or a person box, ds3d.image2d.crops) is first resized to a base
-scale where a person filling it would have that extent, then the pyramid tries `n_scales`
-scales `start * factor**k` around it and keeps, per image, the scale whose PSM score is best.
-To save time, the scale is chosen by a coarse pass (`select_stride`, every 6th pixel; optionally
-with only the first `coarse_trees` trees of each layer) over all scales; only the chosen scale is
-then run at the full `stride` with every tree.
+scale where a person filling it would have that extent, and the pyramid holds `n_scales` scales
+`start * factor**k` around it. Each image's scale is chosen first (InferenceParams.scale_choice):
+by the extent of the joint network's pose at the base scale, or by a coarse pass of the forests
+(`select_stride`, every 6th pixel, the first `coarse_trees` trees of each layer) over every
+scale; only the chosen scale then runs at the full `stride` with every tree.
 
 Joint network. In the final pass its log-probabilities join the cascade's (weighted by
 `jointnet_weight`; ds3d.image2d.left_right); the coarse pass that picks the scale reads the
@@ -22,8 +22,9 @@ person-centric like LSP's labels.
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,15 +34,22 @@ from ds3d.errors import DataFormatError
 from ds3d.image2d.cascade import group_unaries, traversal_groups
 from ds3d.image2d.crops import Crop, resize_image, working_crops
 from ds3d.image2d.facing import FacingNet
+from ds3d.image2d.features import lab_channels
 from ds3d.image2d.forest import Forest
-from ds3d.image2d.jointnet import JointNet, jointnet_unaries
-from ds3d.image2d.left_right import facing_probability, left_right_hypotheses, person_centric
+from ds3d.image2d.jointnet import (
+    STRIDE,
+    JointNet,
+    jointnet_unaries,
+    logits_to_grid,
+    padded_logits,
+    unaries_from_logits,
+)
+from ds3d.image2d.left_right import facing_probability, person_centric, settle_left_right
 from ds3d.image2d.model_files import load_model
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import NUM_JOINTS
 from ds3d.threads import map_on_threads, split_rows
 
 
@@ -68,7 +76,7 @@ class PoseEstimator2D:
         self.params = params
         self.facing = facing
         self.jointnet = jointnet
-        self._first_trees: dict[int, list[Forest]] = {}  # coarse-pass layers, per tree count
+        self._layers_of: dict[int, list[Forest]] = {}  # the layers cut short, per tree count
 
     @classmethod
     def load(cls, model_dir: Path | str | None = None) -> PoseEstimator2D:
@@ -95,9 +103,8 @@ class PoseEstimator2D:
         scales: pyramid scales relative to the base scale (default: the model's 6).
         Returns Estimate2D (joints in each input image's pixels).
 
-        With `select_stride`, a coarse pass (that stride) over every scale picks each image's
-        scale by its PSM score, and only the chosen scale is run at `stride`; otherwise every
-        scale runs at `stride` and the best PSM score wins.
+        Each image's scale is chosen by InferenceParams.scale_choice, and only the chosen scale
+        is run at `stride` (with "every", every scale is, and the best PSM score wins).
 
         With torch.get_num_threads() = N > 1, the batch is split into N parts run at once on N
         threads of one intra-op thread each: the traversal's gathers do not parallelise within
@@ -132,10 +139,23 @@ class PoseEstimator2D:
         timings of the steps (seconds)."""
         p = self.params
         timings = {"features": 0.0, "traversal": 0.0, "jointnet": 0.0, "psm": 0.0}
-        if p.select_stride is None or len(scales) == 1:
+        with_net = self.jointnet is not None and p.jointnet_weight > 0
+        full = self._first_trees(p.trees)  # the full pass's layers
+        if len(scales) > 1 and p.scale_choice == "network" and with_net:
+            choice, base, logits = self._network_scales(crops, scales, timings)
+            parts = []
+            for k in choice.unique().tolist():
+                rows = torch.nonzero(choice == k).view(-1).tolist()
+                reuse = [logits[i] for i in rows] if k == base else None
+                part = self._one_scale(
+                    [crops[i] for i in rows], scales[k], full, p, timings, logits=reuse
+                )
+                parts.append((torch.tensor(rows), part))
+            best = gather_rows(parts, len(crops))
+        elif len(scales) == 1 or p.scale_choice == "every":
             best = None
             for rel in scales:
-                cand = self._one_scale(crops, rel, self.layers, p, timings)
+                cand = self._one_scale(crops, rel, full, p, timings)
                 best = cand if best is None else keep_better(best, cand)
         else:
             # The coarse pass blurs its unaries over the same pixels (at least one cell).
@@ -145,7 +165,7 @@ class PoseEstimator2D:
                 unary_blur=max(1, round(p.unary_blur * p.stride / p.select_stride)),
                 flip_test=False,
             )
-            layers = self.layers if p.coarse_trees is None else self._coarse_layers(p.coarse_trees)
+            layers = self._first_trees(p.coarse_trees)
             score = torch.stack(
                 [
                     self._one_scale(crops, rel, layers, coarse, timings, final=False).score
@@ -156,18 +176,50 @@ class PoseEstimator2D:
             parts = []
             for k in choice.unique().tolist():
                 rows = torch.nonzero(choice == k).view(-1)
-                part = self._one_scale([crops[i] for i in rows], scales[k], self.layers, p, timings)
+                part = self._one_scale([crops[i] for i in rows], scales[k], full, p, timings)
                 parts.append((rows, part))
             best = gather_rows(parts, len(crops))
         best.timings = timings
         return best
 
-    def _coarse_layers(self, k: int) -> list[Forest]:
-        """The layers cut to their first k trees, made once per k (a new Forest converts its
-        node reads again, Forest.node_reads)."""
-        if k not in self._first_trees:
-            self._first_trees[k] = [forest.first_trees(k) for forest in self.layers]
-        return self._first_trees[k]
+    def _network_scales(
+        self, crops: list[Crop], scales: list[float], timings: dict[str, float]
+    ) -> tuple[torch.Tensor, int, list[torch.Tensor]]:
+        """Each crop's pyramid scale from the joint network at the base scale (the scale of
+        `scales` nearest 1): the extent of the PSM's pose on its maps alone says how far the
+        person is from the canonical extent (nearest_scale). Returns the choice (B,) index into
+        scales, the base's index, and each crop's padded_logits at the base scale, for the
+        full pass to reuse where the base is chosen (elsewhere the network runs again: its
+        maps at the chosen scale are worth half a point, docs/RESULTS.md)."""
+        p = self.params
+        base = min(range(len(scales)), key=lambda k: abs(math.log(scales[k])))
+        t0 = time.perf_counter()
+        resized = [resize_image(c.image, c.base * scales[base]) for c in crops]
+        labs = [lab_channels(torch.from_numpy(r)[None]) for r in resized]
+        t1 = time.perf_counter()
+        logits = [padded_logits(self.jointnet, lab) for lab in labs]
+        grids = [
+            logits_to_grid(lg, *r.shape[:2], STRIDE) for lg, r in zip(logits, resized, strict=True)
+        ]
+        t2 = time.perf_counter()
+        gh, gw = max(g.shape[2] for g in grids), max(g.shape[3] for g in grids)
+        unaries = torch.cat([pad_maps(unaries_from_logits(g), gh, gw) for g in grids])
+        pose = infer(unaries * p.unary_weight, self.mixtures, stride=float(STRIDE)).joints_2d
+        extent = (pose.amax(1) - pose.amin(1)).amax(-1)  # (B,) px at the base scale
+        choice = nearest_scale(p.canonical_extent / extent * scales[base], scales)
+        timings["features"] += t1 - t0
+        timings["jointnet"] += t2 - t1
+        timings["psm"] += time.perf_counter() - t2
+        return choice, base, logits
+
+    def _first_trees(self, k: int | None) -> list[Forest]:
+        """The layers cut to their first k trees (None: all), made once per k (a new Forest
+        converts its node reads again, Forest.node_reads)."""
+        if k is None:
+            return self.layers
+        if k not in self._layers_of:
+            self._layers_of[k] = [forest.first_trees(k) for forest in self.layers]
+        return self._layers_of[k]
 
     def _one_scale(
         self,
@@ -177,54 +229,34 @@ class PoseEstimator2D:
         p: EstimatorParams,
         timings: dict[str, float],
         final: bool = True,
+        logits: list[torch.Tensor] | None = None,
     ) -> Estimate2D:
         """Cascade (`layers`) + PSM of every crop at `rel` times its base scale, with params p
         (whose stride and blur may differ from the model's); adds the seconds of each step to
         timings. final: whether this pass answers, so runs the joint network (its unaries are
-        added to the cascade's, left_right_hypotheses) or else the facing model (the coarse
-        pass only needs the cascade's scores; its facing_camera is then 1). The cascade runs on
-        groups of images of similar shape (_traversal_groups), the PSM on the whole batch at
-        once."""
+        added to the cascade's, settle_left_right) or else the facing model (the coarse
+        pass only needs the cascade's scores; its facing_camera is then 1). logits: the joint
+        network's padded_logits of each crop at this scale where already computed. The cascade and
+        the PSM run on groups of images of similar shape (traversal_groups), each padded to its
+        group's largest."""
         t0 = time.perf_counter()
         resized = [resize_image(c.image, c.base * rel) for c in crops]
         sizes = [r.shape[:2] for r in resized]
         timings["features"] += time.perf_counter() - t0
-        parts = [
-            group_unaries(resized, rows, layers, self.mixtures, p, timings)
+        groups = [
+            self._group_pose(resized, rows, layers, p, timings, final, logits)
             for rows in traversal_groups(sizes, layers[-1])
         ]
         # Back to the batch's order, padded to one grid (log(LOG_EPS) outside each image).
-        gh = max(u.shape[2] for _, _, u in parts)
-        gw = max(u.shape[3] for _, _, u in parts)
-        unaries = torch.empty(len(crops), NUM_JOINTS, gh, gw)
-        for rows, _, u in parts:
-            unaries[rows] = pad_maps(u, gh, gw)
-        with_net = final and self.jointnet is not None and p.jointnet_weight > 0
-        if with_net:
-            t1 = time.perf_counter()
-            net = torch.empty_like(unaries)
-            for rows, channels, _ in parts:
-                maps = jointnet_unaries(
-                    self.jointnet, channels, [sizes[i] for i in rows.tolist()], p.stride
-                )
-                net[rows] = pad_maps(maps, gh, gw)
-            timings["jointnet"] += time.perf_counter() - t1
-        t1 = time.perf_counter()
-        faces = torch.ones(len(crops))
-        if with_net:  # the joint network's maps settle left and right
-            unaries, res, faces = left_right_hypotheses(unaries, net, self.mixtures, p)
-            # The centroid sharpens the sum of the two, as the PSM weighs them.
-            working = p.joint_cells(unaries * (1 + p.jointnet_weight), res.cells) * p.stride
-        else:
-            res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
-            res = replace(res, joint_scores=res.joint_scores / p.unary_weight)  # log-probs
-            working = p.joint_cells(unaries, res.cells) * p.stride  # (B, 14, 2) px, working
-            if final:
-                for rows, channels, _ in parts:
-                    faces[rows] = facing_probability(
-                        self.facing, channels, working[rows], [sizes[i] for i in rows.tolist()]
-                    )
-        timings["psm"] += time.perf_counter() - t1
+        gh = max(g.unaries.shape[2] for _, g in groups)
+        gw = max(g.unaries.shape[3] for _, g in groups)
+        order = torch.cat([rows for rows, _ in groups]).argsort()
+
+        def batch(get) -> torch.Tensor:
+            return torch.cat([get(g) for _, g in groups])[order]
+
+        unaries = batch(lambda g: pad_maps(g.unaries, gh, gw))
+        working = batch(lambda g: g.working)
         fac = torch.tensor(
             [
                 [r.shape[1] / c.image.shape[1], r.shape[0] / c.image.shape[0]]
@@ -240,10 +272,65 @@ class PoseEstimator2D:
         affine[:, :, 2] = 0.5 / fac - 0.5 + off
         return Estimate2D(
             joints,
-            res.joint_scores.float(),
-            res.score.float(),
+            batch(lambda g: g.joint_scores),
+            batch(lambda g: g.score),
             unaries,
             affine,
             fac.mean(1),
-            faces,
+            batch(lambda g: g.faces),
         )
+
+    def _group_pose(
+        self,
+        images: list[np.ndarray],
+        rows: list[int],
+        layers: list[Forest],
+        p: EstimatorParams,
+        timings: dict[str, float],
+        final: bool,
+        logits: list[torch.Tensor] | None,
+    ) -> tuple[torch.Tensor, _GroupPose]:
+        """The unaries and PSM pose of the images[rows], one group of _one_scale (arguments as
+        there). Returns (rows (b,) long, the group's _GroupPose)."""
+        rows_t, channels, unaries = group_unaries(images, rows, layers, self.mixtures, p, timings)
+        sizes = [images[i].shape[:2] for i in rows]
+        with_net = final and self.jointnet is not None and p.jointnet_weight > 0
+        if with_net:
+            t1 = time.perf_counter()
+            known = None if logits is None else [logits[i] for i in rows]
+            net = jointnet_unaries(self.jointnet, channels, sizes, p.stride, p.flip_test, known)
+            timings["jointnet"] += time.perf_counter() - t1
+        t1 = time.perf_counter()
+        faces = torch.ones(len(rows))
+        if with_net:  # the joint network's maps settle left and right
+            unaries, res, faces = settle_left_right(unaries, net, self.mixtures, p)
+            # The centroid sharpens the sum of the two, as the PSM weighs them.
+            working = p.joint_cells(unaries * (1 + p.jointnet_weight), res.cells) * p.stride
+        else:
+            res = infer(unaries * p.unary_weight, self.mixtures, stride=float(p.stride))
+            res = replace(res, joint_scores=res.joint_scores / p.unary_weight)  # log-probs
+            working = p.joint_cells(unaries, res.cells) * p.stride  # (b, 14, 2) px, working
+            if final:
+                faces = facing_probability(self.facing, channels, working, sizes)
+        timings["psm"] += time.perf_counter() - t1
+        pose = _GroupPose(unaries, working, res.joint_scores.float(), res.score.float(), faces)
+        return rows_t, pose
+
+
+@dataclass
+class _GroupPose:
+    """What _group_pose finds for b images: unaries (b, 14, gh, gw) of the group's grid, joints
+    (b, 14, 2) px at the working scale, joint scores (b, 14), PSM scores (b,), P(facing)."""
+
+    unaries: torch.Tensor
+    working: torch.Tensor
+    joint_scores: torch.Tensor
+    score: torch.Tensor
+    faces: torch.Tensor
+
+
+def nearest_scale(wanted: torch.Tensor, scales: list[float]) -> torch.Tensor:
+    """wanted (B,) scales (relative to the base) -> (B,) long index of the nearest of `scales`
+    in ratio."""
+    ratio = torch.log(wanted.clamp_min(1e-6))[:, None] - torch.log(torch.tensor(scales))[None]
+    return ratio.abs().argmin(-1)

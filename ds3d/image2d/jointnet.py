@@ -6,12 +6,12 @@ every growing knob tried, and it cannot tell left from right: it reads pixels wi
 each one. This network sees the whole person (a receptive field of about 300 px at the working
 scale, where a person spans 100 px) and is trained on person-centric labels, so its maps carry
 which arm is the right one. The PSM sums both unaries (InferenceParams.jointnet_weight,
-left_right.left_right_hypotheses); the forests stay the paper's unary. What each is worth:
+left_right.settle_left_right); the forests stay the paper's unary. What each is worth:
 docs/RESULTS.md, 2D stage.
 
 Architecture (JointNet): two stride-2 3 x 3 convolutions to a quarter of the resolution, then
-residual blocks of dilated 3 x 3 convolutions (dilations 1, 2, 4, 8, 1), a 1 x 1 convolution to
-14 maps. Output cell (u, v) is centred on input pixel (STRIDE * u, STRIDE * v). Input: Lab / 100
+an hourglass of residual blocks down to stride 16 and back, a 1 x 1 convolution to 14 maps.
+Output cell (u, v) is centred on input pixel (STRIDE * u, STRIDE * v). Input: Lab / 100
 (features.lab_channels) at the working scale, zero outside the image (and in a MARGIN around
 it at inference, as training windows reach past their images).
 
@@ -22,75 +22,153 @@ joint, ds3d.training.jointnet).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from ds3d.image2d.result import LOG_EPS
-from ds3d.skeleton import NUM_JOINTS
+from ds3d.skeleton import FLIP, NUM_JOINTS
 
 STRIDE = 4  # input px per output cell
 # bfloat16 autocast on CPUs whose oneDNN computes it (AVX-512 and newer): twice float32's speed
 # on this project's machines; elsewhere it would be emulated, slower than float32.
 CPU_BFLOAT16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 MARGIN = 16  # px of zeros around an image at inference (logits_on_grid); a multiple of STRIDE
-DILATIONS = (1, 2, 4, 8, 1)
-WIDTH = 64
 
 
-def _conv_bn(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> list[nn.Module]:
-    return [
-        nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation, bias=False),
+@dataclass(frozen=True)
+class JointNetShape:
+    """Channels and residual blocks of the network at strides 4, 8 and 16 (input px per cell).
+    Most of the capacity sits at strides 8 and 16, where a convolution costs a quarter and a
+    sixteenth of one at stride 4, and gives the receptive field that sees the whole person."""
+
+    widths: tuple[int, int, int] = (64, 128, 192)
+    blocks: tuple[int, int, int] = (1, 2, 2)
+
+
+def _conv_bn(cin: int, cout: int, kernel: int = 3, stride: int = 1, dilation: int = 1):
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, kernel, stride, dilation * (kernel // 2), dilation, bias=False),
         nn.BatchNorm2d(cout),
-    ]
+    )
 
 
 class _Residual(nn.Module):
-    def __init__(self, width: int, dilation: int):
+    def __init__(self, width: int, dilation: int = 1):
         super().__init__()
         self.body = nn.Sequential(
-            *_conv_bn(width, width, dilation=dilation), nn.ReLU(), *_conv_bn(width, width)
+            _conv_bn(width, width, dilation=dilation), nn.ReLU(), _conv_bn(width, width)
         )
 
     def forward(self, x: Tensor) -> Tensor:
         return torch.relu(x + self.body(x))
 
 
-class JointNet(nn.Module):
-    """(B, 3, H, W) Lab / 100 -> (B, 14, ceil(H / 4), ceil(W / 4)) joint logits. 400k
-    parameters, about 0.3 G multiply-adds for a 128 x 128 input."""
+class _Down(nn.Sequential):
+    """A stride-2 convolution to `cout` channels, then residual blocks (dilations alternating 1
+    and 2: a wider field at the same cost)."""
 
-    def __init__(self, width: int = WIDTH, dilations: tuple[int, ...] = DILATIONS):
+    def __init__(self, cin: int, cout: int, blocks: int):
+        super().__init__(
+            _conv_bn(cin, cout, stride=2),
+            nn.ReLU(),
+            *[_Residual(cout, 1 + k % 2) for k in range(blocks)],
+        )
+
+
+class _Up(nn.Module):
+    """A coarse map upsampled onto a finer one's cells and added to it, then a residual block."""
+
+    def __init__(self, coarse: int, fine: int):
         super().__init__()
-        self.layers = nn.Sequential(
-            *_conv_bn(3, 32, stride=2), nn.ReLU(),
-            *_conv_bn(32, 32), nn.ReLU(),
-            *_conv_bn(32, width, stride=2), nn.ReLU(),
-            *[_Residual(width, d) for d in dilations],
-            nn.Conv2d(width, NUM_JOINTS, 1),
-        )  # fmt: skip
+        self.coarse = _conv_bn(coarse, fine, kernel=1)
+        self.fine = _conv_bn(fine, fine, kernel=1)
+        self.block = _Residual(fine)
+
+    def forward(self, coarse: Tensor, fine: Tensor) -> Tensor:
+        up = F.interpolate(self.coarse(coarse), size=fine.shape[-2:], mode="bilinear")
+        return self.block(torch.relu(up + self.fine(fine)))
+
+
+class JointNet(nn.Module):
+    """(B, 3, H, W) Lab / 100 -> (B, 14, ceil(H / 4), ceil(W / 4)) joint logits: an hourglass,
+    down to stride 16 and back up to stride 4 with skip connections (JointNetShape). With the
+    default shape 2.7M parameters, about 0.55 G multiply-adds for a 128 x 128 input."""
+
+    def __init__(self, shape: JointNetShape = JointNetShape()):
+        super().__init__()
+        w4, w8, w16 = shape.widths
+        n4, n8, n16 = shape.blocks
+        self.stem = nn.Sequential(
+            _conv_bn(3, 32, stride=2),
+            nn.ReLU(),
+            _conv_bn(32, w4, stride=2),
+            nn.ReLU(),
+            *[_Residual(w4) for _ in range(n4)],
+        )
+        self.down8 = _Down(w4, w8, n8)
+        self.down16 = _Down(w8, w16, n16)
+        self.up8 = _Up(w16, w8)
+        self.up4 = _Up(w8, w4)
+        self.head = nn.Conv2d(w4, NUM_JOINTS, 1)
 
     def forward(self, lab: Tensor) -> Tensor:
-        return self.layers(lab)
+        x4 = self.stem(lab)
+        x8 = self.down8(x4)
+        x16 = self.down16(x8)
+        return self.head(self.up4(self.up8(x16, x8), x4))
 
 
-def logits_on_grid(net: JointNet, lab: Tensor, stride: int) -> Tensor:
-    """The network's logits resampled onto the grid of estimator.grid_positions(H, W, stride):
-    lab (B, 3, H, W) Lab / 100 -> (B, 14, ceil(H / stride), ceil(W / stride)) float32.
+def fold_batch_norms(net: nn.Module) -> nn.Module:
+    """For inference: every convolution followed by a batch norm (in eval mode, an affine map
+    per channel) becomes one convolution, in place; one pass over the maps less for each.
+    Returns net, in eval mode."""
+    net.eval()
+    for module in net.modules():
+        for name, child in module.named_children():
+            if (
+                isinstance(child, nn.Sequential)
+                and len(child) == 2
+                and isinstance(child[0], nn.Conv2d)
+                and isinstance(child[1], nn.BatchNorm2d)
+            ):
+                setattr(module, name, fuse_conv_bn_eval(child[0], child[1]))
+    return net
 
-    The image is run inside a MARGIN px border of zeros, as training windows extend past their
-    images (its effect: docs/RESULTS.md). Grid cell
-    (i, j) is pixel (stride * i, stride * j), so output cell ((stride * i + MARGIN) / STRIDE,
-    (stride * j + MARGIN) / STRIDE): read bilinearly (past the last output cell, the last).
-    bfloat16 on a CPU that computes it (CPU_BFLOAT16), as trained."""
-    height, width = lab.shape[-2:]
+
+def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
+    """The network's logits of images inside a MARGIN px border of zeros, as training windows
+    extend past their images (its effect: docs/RESULTS.md): lab (B, 3, H, W) Lab / 100 ->
+    (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. bfloat16 on
+    a CPU that computes it (CPU_BFLOAT16), as trained."""
     padded = F.pad(lab, (MARGIN, MARGIN, MARGIN, MARGIN))
     bf16 = lab.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        logits = net(padded).float()
+        return net(padded).float()
+
+
+def logits_to_grid(
+    logits: Tensor,
+    height: int,
+    width: int,
+    stride: int,
+    mirrored: bool = False,
+) -> Tensor:
+    """padded_logits of (height, width) images -> their values on the grid of
+    cascade.grid_positions(height, width, stride): (B, 14, ceil(height / stride),
+    ceil(width / stride)). Grid cell (i, j) is pixel (stride * i, stride * j), so output cell
+    ((stride * i + MARGIN) / STRIDE, (stride * j + MARGIN) / STRIDE): read bilinearly (past
+    the last output cell, the last). mirrored: the logits are of the images mirrored left to
+    right; they are read at the mirrored pixels, left and right swapped, so that they describe
+    the images themselves."""
     gh, gw = -(-height // stride), -(-width // stride)
     ys = (torch.arange(gh, dtype=torch.float32) * stride + MARGIN) / STRIDE
-    xs = (torch.arange(gw, dtype=torch.float32) * stride + MARGIN) / STRIDE
+    px = torch.arange(gw, dtype=torch.float32) * stride
+    xs = ((width - 1 - px if mirrored else px) + MARGIN) / STRIDE
     oh, ow = logits.shape[-2:]
     grid = torch.stack(
         [
@@ -100,7 +178,28 @@ def logits_on_grid(net: JointNet, lab: Tensor, stride: int) -> Tensor:
         -1,
     )
     grid = grid[None].expand(len(logits), gh, gw, 2)
-    return F.grid_sample(logits, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    out = F.grid_sample(logits, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[:, list(FLIP)] if mirrored else out
+
+
+def logits_on_grid(
+    net: JointNet,
+    lab: Tensor,
+    stride: int,
+    flip_test: bool = False,
+    padded: Tensor | None = None,
+) -> Tensor:
+    """The network's logits of lab (B, 3, H, W) Lab / 100 on the grid of
+    cascade.grid_positions(H, W, stride): (B, 14, ceil(H / stride), ceil(W / stride)).
+    flip_test: the mean of the logits of the images and of their mirror images. padded: the
+    images' padded_logits where already computed."""
+    height, width = lab.shape[-2:]
+    padded = padded_logits(net, lab) if padded is None else padded
+    logits = logits_to_grid(padded, height, width, stride)
+    if not flip_test:
+        return logits
+    mirrored = padded_logits(net, lab.flip(-1))
+    return (logits + logits_to_grid(mirrored, height, width, stride, mirrored=True)) / 2
 
 
 def spatial_softmax(logits: Tensor) -> Tensor:
@@ -110,17 +209,30 @@ def spatial_softmax(logits: Tensor) -> Tensor:
     return torch.softmax(logits.reshape(b, j, h * w), -1).reshape(b, j, h, w)
 
 
+def unaries_from_logits(logits: Tensor) -> Tensor:
+    """Logits (B, 14, h, w) on a grid -> log(P(joint at the cell) + LOG_EPS), floored as the
+    forests' unaries are."""
+    return (spatial_softmax(logits) + LOG_EPS).log()
+
+
 def jointnet_unaries(
-    net: JointNet, channels: Tensor, sizes: list[tuple[int, int]], stride: int
+    net: JointNet,
+    channels: Tensor,
+    sizes: list[tuple[int, int]],
+    stride: int,
+    flip_test: bool = False,
+    padded: list[Tensor | None] | None = None,
 ) -> Tensor:
     """The joint network's unaries on the grid: channels (b, 12, H, W) zero-padded, sizes b
-    (h, w) -> (b, 14, gh, gw) log(P(joint at the cell) + LOG_EPS), floored as the forests'
-    unaries are; log(LOG_EPS) outside each image. Each image runs alone on its own pixels:
-    past the first batch norm, a padded batch's zeros are no longer zeros, and the network
-    sees about 300 px around each cell."""
+    (h, w) -> (b, 14, gh, gw) unaries_from_logits; log(LOG_EPS) outside each image. Each image
+    runs alone on its own pixels: past the first batch norm, a padded batch's zeros are no
+    longer zeros, and the network sees the whole person around each cell. flip_test, padded
+    (b of them): as logits_on_grid."""
     h, w = channels.shape[-2:]
-    out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), LOG_EPS)
+    out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), np.log(LOG_EPS))
     for i, (hi, wi) in enumerate(sizes):
-        logits = logits_on_grid(net, channels[i : i + 1, :3, :hi, :wi], stride)
-        out[i, :, : logits.shape[2], : logits.shape[3]] = spatial_softmax(logits)[0] + LOG_EPS
-    return out.log()
+        lab = channels[i : i + 1, :3, :hi, :wi]
+        known = None if padded is None else padded[i]
+        logits = logits_on_grid(net, lab, stride, flip_test, known)
+        out[i, :, : logits.shape[2], : logits.shape[3]] = unaries_from_logits(logits)[0]
+    return out

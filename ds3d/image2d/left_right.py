@@ -1,12 +1,15 @@
 """Left and right. The forest cascade labels the limb on the image's left "right" in nearly every
 image, as if everyone faced the camera. The joint network, trained on person-centric labels,
-knows better: the PSM runs with the cascade's maps as they are and with left and right swapped,
-and the better score says whether the person faces the camera (left_right_hypotheses). Without a
-joint network, a small CNN on the image around the PSM's torso says it (ds3d.image2d.facing).
+knows better: whichever labelling of the cascade's maps, as they are or with left and right
+swapped, agrees with its maps says whether the person faces the camera (settle_left_right).
+Without a joint network, a small CNN on the image around the PSM's torso says it
+(ds3d.image2d.facing).
 Either way left and right are swapped at the end where the person faces away (person_centric),
 so results are person-centric like LSP's labels."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import torch
 
@@ -17,40 +20,43 @@ from ds3d.image2d.result import Estimate2D
 from ds3d.skeleton import FLIP
 
 
-def left_right_hypotheses(
+def settle_left_right(
     forest: torch.Tensor, net: torch.Tensor, mixtures: PairwiseMixtures, p: EstimatorParams
 ) -> tuple[torch.Tensor, PsmResult, torch.Tensor]:
-    """The PSM on the forests' unaries plus jointnet_weight times the joint network's, with the
-    forests' maps taken as they are and with their left and right swapped: the forests label
-    the limb on the image's left "right" (as if everyone faced the camera), the network labels
-    the person's own, so the better score of the two says whether the person faces the camera.
+    """The forests label the limb on the image's left "right" (as if everyone faced the camera),
+    the network labels the person's own: the labelling of the forests' maps (as they are, or
+    with left and right swapped) whose joints agree better with the network's says whether the
+    person faces the camera, and the PSM runs on it plus jointnet_weight times the network's.
 
+    Agreement of a labelling: the sum over joints of the log-probability that the two put the
+    joint on the same cell (sum over cells of the product of their maps' probabilities); P(faces
+    the camera) is the sigmoid of the difference between the two labellings' agreements.
     forest, net: (B, 14, H, W) log-probability unaries -> (unaries (B, 14, H, W), the PSM's
     result, (B,) P(faces the camera)): the chosen labelling's unaries as a weighted mean,
     (forest + w net) / (1 + w), so that they stay log-probabilities floored at log(LOG_EPS)
-    like the forests' (the PSM weighs them by unary_weight * (1 + w): it sees the sum), and
-    its MAP pose, both in the forests' labelling (so that person_centric swaps them to the
-    person's own where P < 0.5); P is the sigmoid of the score difference of the two
-    labellings."""
-    b, flip, w = len(forest), list(FLIP), p.jointnet_weight
-    both = (torch.cat([forest, forest[:, flip]]) + w * net.repeat(2, 1, 1, 1)) / (1 + w)
-    res = infer(both * (p.unary_weight * (1 + w)), mixtures, stride=float(p.stride))
-    facing = torch.sigmoid(res.score[:b] - res.score[b:])
+    like the forests' (the PSM weighs them by unary_weight * (1 + w): it sees the sum), and its
+    MAP pose, both in the forests' labelling (so that person_centric swaps them to the person's
+    own where P < 0.5)."""
+    flip, w = list(FLIP), p.jointnet_weight
+    facing = torch.sigmoid(_agreement(forest, net) - _agreement(forest[:, flip], net))
     away = facing < 0.5
-    rows = torch.arange(b) + b * away.long()
 
     def forest_labels(t: torch.Tensor) -> torch.Tensor:
-        """Rows of the chosen labelling, joints back in the forests' order."""
-        t = t[rows]
+        """t with its joints swapped where the person faces away: from the forests' labelling
+        to the network's and back."""
         return torch.where(away.view(-1, *[1] * (t.ndim - 1)), t[:, flip], t)
 
-    chosen = PsmResult(
-        forest_labels(res.joints_2d),
-        forest_labels(res.cells),
-        res.score[rows],
-        forest_labels(res.joint_scores) / (p.unary_weight * (1 + w)),
-    )
-    return forest_labels(both), chosen, facing
+    unaries = (forest + w * forest_labels(net)) / (1 + w)  # in the forests' labelling
+    res = infer(unaries * (p.unary_weight * (1 + w)), mixtures, stride=float(p.stride))
+    res = replace(res, joint_scores=res.joint_scores / (p.unary_weight * (1 + w)))  # log-probs
+    return unaries, res, facing
+
+
+def _agreement(forest: torch.Tensor, net: torch.Tensor) -> torch.Tensor:
+    """(B, 14, H, W) log-probability maps of two labellings -> (B,) sum over joints of the log
+    of their maps' overlap (the probability that both put the joint on the same cell)."""
+    both = torch.softmax(forest.flatten(2), -1) * torch.softmax(net.flatten(2), -1)
+    return both.sum(-1).clamp_min(1e-30).log().sum(-1)
 
 
 def person_centric(est: Estimate2D) -> Estimate2D:

@@ -20,7 +20,7 @@ import torch
 from ds3d.errors import DataFormatError
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.forest import Forest
-from ds3d.image2d.jointnet import JointNet
+from ds3d.image2d.jointnet import JointNet, JointNetShape, fold_batch_norms
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
 
@@ -51,7 +51,10 @@ def load_model(model_dir: Path) -> Model2D:
         facing = manifest.get("facing")
         facing = load_facing(model_dir / facing) if facing else None
         jointnet = manifest.get("jointnet")
-        jointnet = load_jointnet(model_dir / jointnet) if jointnet else None
+        if jointnet:
+            shape = manifest["jointnet_shape"]
+            shape = JointNetShape(tuple(shape["widths"]), tuple(shape["blocks"]))
+            jointnet = load_jointnet(model_dir / jointnet, shape)
     except (KeyError, TypeError, OSError, RuntimeError) as exc:
         raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
     return Model2D(layers, mixtures, params, facing, jointnet)
@@ -65,11 +68,12 @@ def save_model(
     params: EstimatorParams,
     provenance: dict,
     train_seconds: dict[str, float],
+    jointnet_shape: JointNetShape | None = None,
 ) -> dict:
     """Write a trained model to out_dir (created): the layers, the mixtures, each network's
     state dict (networks: name in NET_FILES -> state dict) and the manifest, whose
     `provenance` entries (data, seed, train_config) are the trainer's to give, as are the
-    seconds each part took to train. Returns the manifest."""
+    seconds each part took to train and the joint network's shape. Returns the manifest."""
     out_dir.mkdir(parents=True, exist_ok=True)
     layer_files = [f"forest{i + 1}.pt.gz" for i in range(len(layers))]
     for forest, layer_file in zip(layers, layer_files, strict=True):
@@ -84,6 +88,7 @@ def save_model(
         "layers": layer_files,
         "psm": PSM_FILE,
         **{name: NET_FILES[name] if name in networks else None for name in NET_FILES},
+        "jointnet_shape": None if jointnet_shape is None else asdict(jointnet_shape),
         "train_seconds": {k: round(v, 1) for k, v in train_seconds.items()},
         "metrics": {},
     }
@@ -91,12 +96,15 @@ def save_model(
     return manifest
 
 
-def replace_jointnet(model_dir: Path, state: dict, train_config: dict, seconds: float) -> dict:
-    """Put a (re)trained joint network into a model: its state dict, the training configuration
-    it was trained with, and the seconds it took. Returns the manifest."""
+def replace_jointnet(
+    model_dir: Path, state: dict, shape: JointNetShape, train_config: dict, seconds: float
+) -> dict:
+    """Put a (re)trained joint network into a model: its state dict and shape, the training
+    configuration it was trained with, and the seconds it took. Returns the manifest."""
     manifest = read_manifest(model_dir)
     torch.save(state, model_dir / NET_FILES["jointnet"])
     manifest["jointnet"] = NET_FILES["jointnet"]
+    manifest["jointnet_shape"] = asdict(shape)
     manifest["train_config"] = train_config
     manifest["train_seconds"]["jointnet"] = round(seconds, 1)
     write_manifest(model_dir, manifest)
@@ -141,11 +149,12 @@ def load_facing(path: Path) -> FacingNet:
     return net.eval()
 
 
-def load_jointnet(path: Path) -> JointNet:
-    """The joint network's saved state dict (ds3d.image2d.jointnet) -> the network, eval mode."""
-    net = JointNet()
+def load_jointnet(path: Path, shape: JointNetShape) -> JointNet:
+    """The joint network's saved state dict (ds3d.image2d.jointnet) -> the network of `shape`,
+    ready for inference (fold_batch_norms)."""
+    net = JointNet(shape)
     net.load_state_dict(torch.load(path, weights_only=True))
-    return net.eval()
+    return fold_batch_norms(net)
 
 
 def read_manifest(model_dir: Path) -> dict:

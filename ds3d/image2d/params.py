@@ -32,6 +32,9 @@ class ModelParams:
     observer_labels: bool = False  # observer-centric cascade + PSM; the facing model decides
 
 
+SCALE_CHOICES = ("network", "coarse", "every")
+
+
 @dataclass(frozen=True)
 class InferenceParams:
     """What inference may override (`ds3d eval lsp --set NAME=VALUE`)."""
@@ -48,16 +51,27 @@ class InferenceParams:
     n_scales: int = 6
     scale_factor: float = 0.85
     scale_start: float = 1.0 / 0.85**2  # the largest pyramid scale, relative to the base
-    # A coarse pass at this stride picks each image's scale, then only that scale runs at
-    # `stride` (None: every scale at `stride`, the best PSM score wins; 1.5-2x slower).
-    select_stride: int | None = 6
+    # How each image's pyramid scale is chosen before the full pass runs on it alone:
+    # "network": the extent of the joint network's pose at the base scale (the forests-alone
+    # path falls back to "coarse"); "coarse": the best PSM score of a coarse pass of the
+    # forests at `select_stride` over every scale; "every": the full pass on every scale, the
+    # best PSM score wins.
+    scale_choice: str = "network"
+    select_stride: int = 6
     coarse_trees: int | None = 8  # trees per layer in the coarse pass (None: all)
+    trees: int | None = 8  # trees per layer in the full pass (None: all)
     # Whether the full-stride pass averages each image's class probabilities with its mirror
     # image's (mapped back; the coarse pass never does).
     flip_test: bool = False
     # Weight of the joint network's unaries (ds3d.image2d.jointnet) against the forests' in the
     # final pass of a model that has one (0: the forests alone, as without one).
     jointnet_weight: float = 1.5
+
+    def __post_init__(self):
+        if self.scale_choice not in SCALE_CHOICES:
+            raise ValueError(
+                f"scale_choice must be one of {SCALE_CHOICES}, not {self.scale_choice!r}"
+            )
 
     def joint_cells(self, unaries: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
         """Where the joints of a PSM MAP go: unaries (B, 14, H, W) log-probabilities the PSM ran

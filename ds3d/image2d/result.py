@@ -28,8 +28,8 @@ class Estimate2D:
         pixels (x, y): image_xy = map_to_image @ (u, v, 1).
     scale: (B,) float32, the working scale chosen (working px per image px, mean of x and y).
     facing_camera: (B,) float32, the probability that the person faces the camera: with a joint
-        network, the sigmoid of the PSM score of the cascade's labelling minus that of the
-        swapped one (left_right_hypotheses); else the facing model's (1 for models with
+        network, from how much better the cascade's labelling agrees with the network's maps
+        than the swapped one (settle_left_right); else the facing model's (1 for models with
         neither); below 0.5, left and right were swapped.
     timings: seconds per step (features, traversal, jointnet, psm, total).
     """

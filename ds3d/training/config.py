@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ds3d.image2d.jointnet import JointNetShape
+
 
 @dataclass
 class TrainConfig:
@@ -21,11 +23,21 @@ class TrainConfig:
     pos_radius: float = 5.0  # px: pixels this close to a joint are that joint's positives
     facing_epochs: int = 48  # of the facing CNN (ds3d.image2d.facing)
     facing_lr: float = 3e-3  # its peak learning rate (one cycle)
-    jointnet_epochs: int = 14  # of the joint network (ds3d.image2d.jointnet); 0: facing CNN
+    jointnet_epochs: int = 40  # of the joint network (ds3d.image2d.jointnet); 0: facing CNN
     jointnet_lr: float = 3e-3  # its peak learning rate (one cycle)
+    jointnet_widths: tuple[int, int, int] = JointNetShape.widths  # its JointNetShape
+    jointnet_blocks: tuple[int, int, int] = JointNetShape.blocks
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20
     # The paper has 15; 3 scores as well on the held-out images, with a 5x cheaper PSM.
     psm_components: int = 3
     psm_iterations: int = 50
+
+    def jointnet_shape(self) -> JointNetShape:
+        return JointNetShape(tuple(self.jointnet_widths), tuple(self.jointnet_blocks))
+
+    @classmethod
+    def from_saved(cls, saved: dict) -> TrainConfig:
+        """A configuration as a manifest saved it (JSON: tuples came back as lists)."""
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -25,12 +26,13 @@ from ds3d.image2d.features import (
     pad_channels,
     sample_pool,
 )
-from ds3d.image2d.forest import Forest, fit_tree, stack_trees
+from ds3d.image2d.forest import Forest
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.training.config import TrainConfig
 from ds3d.training.images import TrainingImage, load_training_image, observer_centric
+from ds3d.training.trees import fit_tree, stack_trees
 
 log = logging.getLogger(__name__)
 
@@ -158,14 +160,27 @@ def grow_cascade(
     params: EstimatorParams,
     mixtures: PairwiseMixtures,
     rng: np.random.Generator,
+    checkpoint: Path | None = None,
 ) -> tuple[list[Forest], dict[str, float]]:
     """The cascade's layers, each on its share of the images (items: one list of (annotation
     index, flipped) per layer, see train; mixtures: the PSM's, for the contexts), and the
-    seconds each took."""
+    seconds each took.
+
+    checkpoint: a folder where each layer is written when grown, with the random state after
+    it; the layers found there are read instead of grown again (a resumed training ends with
+    the layers of an uninterrupted one)."""
     timings = {}
     layers: list[Forest] = []
     for depth, (n_trees, share) in enumerate(zip(cfg.trees, items, strict=True), 1):
         t0 = time.perf_counter()
+        saved = None if checkpoint is None else checkpoint / f"forest{depth}.pt"
+        if saved is not None and saved.is_file():
+            state = torch.load(saved, weights_only=False)
+            layers.append(Forest.from_dict(state["forest"]))
+            rng.bit_generator.state = state["rng"]
+            timings[f"layer{depth}"] = state["seconds"]
+            log.info("layer %d: read from %s", depth, saved)
+            continue
         contexts = None
         if layers:
             contexts = cascade_contexts(ann, share, layers, params, mixtures)
@@ -174,4 +189,13 @@ def grow_cascade(
             )
         layers.append(grow_layer(ann, share, contexts, n_trees, cfg, params, rng))
         timings[f"layer{depth}"] = time.perf_counter() - t0
+        if saved is not None:
+            state = {
+                "forest": layers[-1].to_dict(),
+                "rng": rng.bit_generator.state,
+                "seconds": timings[f"layer{depth}"],
+            }
+            saved.parent.mkdir(parents=True, exist_ok=True)
+            torch.save(state, saved.with_name(saved.name + ".partial"))
+            saved.with_name(saved.name + ".partial").replace(saved)
     return layers, timings

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +36,8 @@ from ds3d.training.psm import fit_psm
 
 log = logging.getLogger(__name__)
 
+CHECKPOINT_DIR = "checkpoint"  # in a model folder while it trains
+
 
 def fit_on_one_thread(
     fit, ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig, log_level: int
@@ -43,17 +47,28 @@ def fit_on_one_thread(
     result depends on the thread count (the order in which gradients are summed)."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
-    t0 = time.perf_counter()
-    return fit(ann, params, cfg), time.perf_counter() - t0
+    return fit(ann, params, cfg)
 
 
-def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=None) -> dict:
+def train(
+    cfg: TrainConfig,
+    params: EstimatorParams,
+    out_dir: Path,
+    evaluate=None,
+    resume: bool = False,
+) -> dict:
     """Train the cascade, the PSM and one network (the joint network, or the facing CNN where
     cfg.jointnet_epochs is 0); write them with manifest.json to out_dir.
 
+    Progress is saved in out_dir/CHECKPOINT_DIR (each forest layer once grown, the joint
+    network after every epoch) and removed at the end; `resume` continues from it, to the
+    model an uninterrupted run gives, else it starts afresh.
     evaluate: None or a callable(out_dir) -> dict of metrics, stored in the manifest.
     Returns the manifest dict.
     """
+    checkpoint = out_dir / CHECKPOINT_DIR
+    if not resume:
+        shutil.rmtree(checkpoint, ignore_errors=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     train_ann, _ = training_annotations(cfg)
@@ -71,11 +86,16 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
     # on one thread (scikit-learn grows a tree on one core), so that it is the same whatever
     # --threads says. The joint network settles left and right itself
     # (ds3d.image2d.left_right); the facing CNN serves models without one.
-    name, fit = ("jointnet", fit_jointnet) if cfg.jointnet_epochs else ("facing", fit_facing)
+    if cfg.jointnet_epochs:
+        name, fit = "jointnet", partial(fit_jointnet, checkpoint=checkpoint / "jointnet.pt")
+    else:
+        name, fit = "facing", fit_facing
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=spawn) as pool:
         net = pool.submit(fit_on_one_thread, fit, train_ann, params, cfg, log.getEffectiveLevel())
-        layers, layer_timings = grow_cascade(train_ann, items, cfg, params, mixtures, rng)
+        layers, layer_timings = grow_cascade(
+            train_ann, items, cfg, params, mixtures, rng, checkpoint
+        )
         state, timings[name] = net.result()
     timings.update(layer_timings)
     timings["total"] = time.perf_counter() - t0
@@ -90,7 +110,11 @@ def train(cfg: TrainConfig, params: EstimatorParams, out_dir: Path, evaluate=Non
         "seed": cfg.seed,
         "train_config": asdict(cfg),
     }
-    manifest = save_model(out_dir, layers, mixtures, {name: state}, params, provenance, timings)
+    shape = cfg.jointnet_shape() if name == "jointnet" else None
+    manifest = save_model(
+        out_dir, layers, mixtures, {name: state}, params, provenance, timings, shape
+    )
+    shutil.rmtree(checkpoint, ignore_errors=True)
     if evaluate is not None:
         manifest = record_metrics(out_dir, "validation", evaluate(out_dir))
     return manifest

@@ -17,6 +17,9 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from dataclasses import asdict
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -25,7 +28,7 @@ from torch import Tensor
 from ds3d.data.lsp import PoseAnnotations
 from ds3d.image2d.facing import crop
 from ds3d.image2d.features import lab_channels
-from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet
+from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet, JointNetShape
 from ds3d.image2d.params import EstimatorParams
 from ds3d.skeleton import FLIP, NUM_JOINTS
 from ds3d.training.config import TrainConfig
@@ -35,8 +38,8 @@ log = logging.getLogger(__name__)
 
 WINDOW = 176  # px at the working scale, kept per training image
 CROP = 128  # px, the network's training input
-ROTATION = 30.0  # degrees
-ZOOM = (0.85, 1.3)  # window px per input px
+ROTATION = 40.0  # degrees
+ZOOM = (1 / 1.3, 1 / 0.7)  # window px per input px: the person at 0.7-1.3 times its size
 SHIFT = 12.0  # px
 SIGMA = 1.0  # output cells
 BATCH = 64
@@ -94,17 +97,36 @@ def jointnet_loss(logits: Tensor, joints: Tensor, mask: Tensor) -> Tensor:
 
 
 def train_jointnet(
-    windows: Tensor, joints: Tensor, located: Tensor, epochs: int, lr: float, seed: int
-) -> JointNet:
-    """JointNet trained on jointnet_windows: AdamW, a one-cycle learning rate peaking at lr,
-    `epochs` epochs of batches of BATCH random views (augment)."""
+    windows: Tensor,
+    joints: Tensor,
+    located: Tensor,
+    epochs: int,
+    lr: float,
+    seed: int,
+    shape: JointNetShape = JointNetShape(),
+    checkpoint: Path | None = None,
+) -> tuple[JointNet, float]:
+    """JointNet of `shape` trained on jointnet_windows: AdamW, a one-cycle learning rate peaking
+    at lr, `epochs` epochs of batches of BATCH random views (augment). Returns the network and
+    the seconds its epochs took (over every run of a resumed training).
+
+    checkpoint: where the state after every epoch is written (network, optimiser, schedule,
+    random state); a run that finds one there, of the same training, resumes after its epoch and
+    ends with the network an uninterrupted run would have (on as many threads).
+    """
     torch.manual_seed(seed * 1000 + 11)
-    net = JointNet().to(memory_format=torch.channels_last)
+    net = JointNet(shape).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
     steps = epochs * -(-len(windows) // BATCH)
     schedule = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps)
+    run = {"epochs": epochs, "lr": lr, "seed": seed, "shape": asdict(shape), "n": len(windows)}
+    first, seconds = 0, 0.0
+    if checkpoint is not None and checkpoint.is_file():
+        first, seconds = _resume(checkpoint, run, net, opt, schedule)
+        log.info("jointnet: resumed after epoch %d from %s", first, checkpoint)
     net.train()
-    for epoch in range(epochs):
+    for epoch in range(first, epochs):
+        t0 = time.perf_counter()
         total = 0.0
         for rows in torch.randperm(len(windows)).split(BATCH):
             views, pts, mask = augment(windows[rows], joints[rows], located[rows])
@@ -116,8 +138,42 @@ def train_jointnet(
             opt.step()
             schedule.step()
             total += float(loss.detach()) * len(rows)
-        log.info("jointnet epoch %d: loss %.4f", epoch + 1, total / len(windows))
-    return net.eval()
+        seconds += time.perf_counter() - t0
+        log.info("jointnet epoch %d: loss %.4f (%.0f s)", epoch + 1, total / len(windows), seconds)
+        if checkpoint is not None:
+            _save_checkpoint(checkpoint, run, epoch + 1, seconds, net, opt, schedule)
+    return net.eval(), seconds
+
+
+def _save_checkpoint(path: Path, run: dict, epoch: int, seconds: float, net, opt, schedule):
+    """The training state after `epoch` epochs (`seconds` in all), written whole or not at all."""
+    state = {
+        "run": run,
+        "epoch": epoch,
+        "seconds": seconds,
+        "net": net.state_dict(),
+        "opt": opt.state_dict(),
+        "schedule": schedule.state_dict(),
+        "rng": torch.get_rng_state(),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    torch.save(state, partial)
+    partial.replace(path)
+
+
+def _resume(path: Path, run: dict, net, opt, schedule) -> tuple[int, float]:
+    """Load a checkpoint of the same training `run` into net, opt and schedule and the random
+    state; returns the epochs it had done and their seconds. Raises ValueError for another
+    training's."""
+    state = torch.load(path, weights_only=False)
+    if state["run"] != run:
+        raise ValueError(f"{path} is a checkpoint of another training: {state['run']} != {run}")
+    net.load_state_dict(state["net"])
+    opt.load_state_dict(state["opt"])
+    schedule.load_state_dict(state["schedule"])
+    torch.set_rng_state(state["rng"])
+    return state["epoch"], state["seconds"]
 
 
 def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tensor, ...]:
@@ -140,8 +196,21 @@ def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Ten
     return windows, joints, located
 
 
-def fit_jointnet(ann: PoseAnnotations, params: EstimatorParams, cfg: TrainConfig) -> dict:
-    """The joint network's state dict, from jointnet_windows + train_jointnet."""
+def fit_jointnet(
+    ann: PoseAnnotations,
+    params: EstimatorParams,
+    cfg: TrainConfig,
+    checkpoint: Path | None = None,
+) -> tuple[dict, float]:
+    """The joint network's state dict, from jointnet_windows + train_jointnet (checkpointed to
+    `checkpoint`, resumed from it when it holds this training's), its floats stored as float16
+    (half the file; the network runs in bfloat16 anyway), and the seconds it took (the windows
+    and every epoch)."""
+    t0 = time.perf_counter()
     windows = jointnet_windows(ann, params)
-    net = train_jointnet(*windows, cfg.jointnet_epochs, cfg.jointnet_lr, cfg.seed)
-    return net.state_dict()
+    windows_seconds = time.perf_counter() - t0
+    net, seconds = train_jointnet(
+        *windows, cfg.jointnet_epochs, cfg.jointnet_lr, cfg.seed, cfg.jointnet_shape(), checkpoint
+    )
+    state = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
+    return state, windows_seconds + seconds

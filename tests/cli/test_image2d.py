@@ -26,16 +26,16 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
     assert project_relative(MODELS_DIR / "image2d") == "models/image2d"  # same on any checkout
     for name in ("psm", "unary_argmax"):
         assert 0 <= report[name]["pck@0.2"] <= 1 and len(report[name]["pck@0.2_per_joint"]) == 14
-    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "select_stride=none"]
+    overrides = ["observer_labels=false", "stride=4", "unary_weight=1.5", "coarse_trees=none"]
     assert field_overrides(EstimatorParams, overrides) == {
         "observer_labels": False,
         "stride": 4,
         "unary_weight": 1.5,
-        "select_stride": None,
+        "coarse_trees": None,
     }
-    assert field_overrides(EstimatorParams, ["select_stride=6"]) == {"select_stride": 6}
+    assert field_overrides(EstimatorParams, ["coarse_trees=6"]) == {"coarse_trees": 6}
     with pytest.raises(SystemExit, match=re.escape("is not a int | None")):
-        field_overrides(EstimatorParams, ["select_stride=six"])
+        field_overrides(EstimatorParams, ["coarse_trees=six"])
     with pytest.raises(SystemExit, match="not a InferenceParams field"):
         cli(["eval", "lsp", "--model", str(small_model), "--set", "n_scale=2"])
     with pytest.raises(SystemExit, match="is not a bool"):

@@ -6,7 +6,8 @@ import torch
 from sklearn.tree import DecisionTreeClassifier
 
 from ds3d.image2d import features as ft
-from ds3d.image2d.forest import export_tree, float32_threshold, predict_proba, stack_trees, traverse
+from ds3d.image2d.forest import predict_proba, traverse
+from ds3d.training.trees import export_tree, float32_threshold, stack_trees
 
 RADIUS = 6
 

@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 
-from ds3d.image2d.jointnet import MARGIN, STRIDE, JointNet, logits_on_grid, spatial_softmax
+from ds3d.image2d.jointnet import (
+    MARGIN,
+    STRIDE,
+    JointNet,
+    JointNetShape,
+    fold_batch_norms,
+    logits_on_grid,
+    spatial_softmax,
+)
 from ds3d.skeleton import NUM_JOINTS
 
 
@@ -46,3 +56,21 @@ class _Ramp(nn.Module):
         c = torch.arange(NUM_JOINTS, dtype=torch.float32)
         ramp = u[None, None, :] + 100 * v[None, :, None] + c[:, None, None]
         return ramp.expand(b, -1, -1, -1)
+
+
+def test_folding_the_batch_norms_keeps_the_network():
+    torch.manual_seed(0)
+    net = JointNet(JointNetShape((8, 8, 8), (1, 1, 1)))
+    for m in net.modules():  # batch norms that do something
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.normal_()
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.normal_()
+            m.bias.data.normal_()
+    net.eval()
+    lab = torch.randn(2, 3, 40, 28)
+    with torch.no_grad():
+        expected = net(lab)
+        folded = fold_batch_norms(copy.deepcopy(net))
+        assert not any(isinstance(m, nn.BatchNorm2d) for m in folded.modules())
+        torch.testing.assert_close(folded(lab), expected, rtol=1e-4, atol=1e-4)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ds3d.image2d.left_right import left_right_hypotheses, person_centric
+from ds3d.image2d.left_right import person_centric, settle_left_right
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import fit_pairwise_mixtures
 from ds3d.image2d.result import Estimate2D
@@ -42,7 +42,7 @@ def test_hypotheses_take_left_and_right_from_the_network(net_faces_camera):
     params = EstimatorParams(stride=1, jointnet_weight=1.0, unary_weight=1.0)
     forest = _peaks(pose, 70, 52)
     net = _peaks(pose if net_faces_camera else pose[flip], 70, 52)
-    unaries, res, facing = left_right_hypotheses(forest, net, mixtures, params)
+    unaries, res, facing = settle_left_right(forest, net, mixtures, params)
     assert bool(facing[0] > 0.5) == net_faces_camera
     torch.testing.assert_close(res.cells[0].float(), pose)  # the forests' labelling
     want = (forest + net if net_faces_camera else forest + net[:, flip]) / 2  # mean, w = 1
