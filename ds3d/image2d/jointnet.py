@@ -143,12 +143,14 @@ def fold_batch_norms(net: nn.Module) -> nn.Module:
 def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
     extend past their images (its effect: docs/RESULTS.md): lab (B, 3, H, W) Lab / 100 ->
-    (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. bfloat16 on
-    a CPU that computes it (CPU_BFLOAT16), as trained."""
+    (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. Computed in
+    the network's dtype: bfloat16 as load_jointnet leaves it on a CPU that computes it
+    (CPU_BFLOAT16), or a float32 network under bfloat16 autocast there, as trained."""
     padded = F.pad(lab, (MARGIN, MARGIN, MARGIN, MARGIN))
-    bf16 = lab.is_cpu and CPU_BFLOAT16
-    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        return net(padded).float()
+    dtype = next(net.parameters(), lab).dtype
+    autocast = dtype == torch.float32 and lab.is_cpu and CPU_BFLOAT16
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+        return net(padded.to(dtype)).float()
 
 
 def logits_to_grid(

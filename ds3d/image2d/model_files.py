@@ -20,7 +20,7 @@ import torch
 from ds3d.errors import DataFormatError
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.forest import Forest
-from ds3d.image2d.jointnet import JointNet, JointNetShape, fold_batch_norms
+from ds3d.image2d.jointnet import CPU_BFLOAT16, JointNet, JointNetShape, fold_batch_norms
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
 
@@ -151,10 +151,12 @@ def load_facing(path: Path) -> FacingNet:
 
 def load_jointnet(path: Path, shape: JointNetShape) -> JointNet:
     """The joint network's saved state dict (ds3d.image2d.jointnet) -> the network of `shape`,
-    ready for inference (fold_batch_norms)."""
+    ready for inference (fold_batch_norms), in bfloat16 on a CPU that computes it
+    (CPU_BFLOAT16): autocast would cast the weights again on every call, a fifth of the time."""
     net = JointNet(shape)
     net.load_state_dict(torch.load(path, weights_only=True))
-    return fold_batch_norms(net)
+    net = fold_batch_norms(net)
+    return net.to(torch.bfloat16) if CPU_BFLOAT16 else net
 
 
 def read_manifest(model_dir: Path) -> dict:
