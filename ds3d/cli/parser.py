@@ -90,12 +90,20 @@ def field_overrides(cls, items: list[str]) -> dict:
 
 
 def _convert(kind, value: str):
-    """A --set value as `kind`: bool, int, float, str or an optional (`X | None`) of them."""
+    """A --set value as `kind`: bool, int, float, str, an optional (`X | None`) of them, or a
+    tuple of them, comma-separated (`64,128,192`)."""
     options = typing.get_args(kind)
     if type(None) in options:
         if value.lower() == "none":
             return None
         (kind,) = (o for o in options if o is not type(None))
+    if typing.get_origin(kind) is tuple:
+        items = value.split(",")
+        kinds = typing.get_args(kind)
+        kinds = kinds[:1] * len(items) if kinds[-1:] == (Ellipsis,) else kinds
+        if len(kinds) != len(items):
+            raise ValueError(value)
+        return tuple(_convert(k, item) for k, item in zip(kinds, items, strict=True))
     if kind is bool:
         if value.lower() not in ("true", "false", "1", "0"):
             raise ValueError(value)

@@ -22,7 +22,7 @@ from ds3d.pipeline import Pipeline, PipelineConfig
 from ds3d.skeleton import JOINT_NAMES
 
 # The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
-# weighting) and the full method (K = 256 -> K_w = 64 weighted, two iterations), as
+# weighting) and the full method (K = 256 -> K_w = 64 weighted, PipelineConfig's iterations), as
 # (PipelineConfig fields, LifterConfig fields).
 REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
     "full": ({}, {}),

@@ -10,5 +10,5 @@ jointnet.py     the joint network, a second unary
 psm.py          pictorial structure model; maxconv.py its max-convolution
 left_right.py   which labelling of left and right fits; facing.py the facing CNN
 model_files.py  a trained model on disk and its manifest
-estimator.py    PoseEstimator2D: the pyramid, the coarse pass, all of the above wired
+estimator.py    PoseEstimator2D: the pyramid, the choice of scale, all of the above wired
 """

@@ -11,6 +11,7 @@ from ds3d.cli import main as cli
 from ds3d.cli.parser import field_overrides
 from ds3d.image2d.params import EstimatorParams
 from ds3d.paths import MODELS_DIR, project_relative
+from ds3d.training.config import TrainConfig
 
 
 @pytest.mark.usefixtures("data_dir")
@@ -45,3 +46,15 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
         cli(["eval", "lsp", "--model", str(small_model), "--set", "stride=4"])
     with pytest.raises(ValueError, match="not an inference parameter: stride"):
         EstimatorParams().with_inference(stride=4)
+
+
+def test_set_takes_a_tuple_as_comma_separated_values():
+    overrides = ["jointnet_widths=32,64,96", "jointnet_blocks=1,1,2"]
+    assert field_overrides(TrainConfig, overrides) == {
+        "jointnet_widths": (32, 64, 96),
+        "jointnet_blocks": (1, 1, 2),
+    }
+    with pytest.raises(SystemExit, match="is not a tuple"):
+        field_overrides(TrainConfig, ["jointnet_widths=32,64"])
+    with pytest.raises(SystemExit, match="is not a tuple"):
+        field_overrides(TrainConfig, ["jointnet_widths=32,64,wide"])
