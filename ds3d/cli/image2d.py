@@ -55,6 +55,11 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
     p.add_argument("--resume", action="store_true", help=RESUME)
     p.add_argument(
+        "--no-jointnet",
+        action="store_true",
+        help="no joint network: `ds3d train-jointnet --model OUT` adds it, on more threads",
+    )
+    p.add_argument(
         "--observer-labels",
         action="store_true",
         help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
@@ -103,6 +108,8 @@ def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
+    if args.no_jointnet:
+        cfg = replace(cfg, jointnet_epochs=0)
     overrides = field_overrides(EstimatorParams, args.set)
     params = EstimatorParams(**{"observer_labels": args.observer_labels, **overrides})
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
@@ -123,7 +130,7 @@ def cmd_train_jointnet(args) -> int:
     if any(not name.startswith("jointnet_") for name in overrides):
         raise SystemExit("train-jointnet --set takes the jointnet_* fields of TrainConfig")
     defaults = {f.name: f.default for f in fields(TrainConfig) if f.name.startswith("jointnet_")}
-    cfg = replace(TrainConfig.from_saved(saved), **defaults, **overrides)
+    cfg = replace(TrainConfig.from_saved(saved), **(defaults | overrides))
     checkpoint = args.model / CHECKPOINT_DIR / "jointnet.pt"
     if not args.resume:
         checkpoint.unlink(missing_ok=True)

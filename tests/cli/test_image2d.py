@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
+import torch
 
 from ds3d.cli import main as cli
 from ds3d.cli.parser import field_overrides
+from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.params import EstimatorParams
 from ds3d.paths import MODELS_DIR, project_relative
 from ds3d.training.config import TrainConfig
@@ -58,3 +61,21 @@ def test_set_takes_a_tuple_as_comma_separated_values():
         field_overrides(TrainConfig, ["jointnet_widths=32,64"])
     with pytest.raises(SystemExit, match="is not a tuple"):
         field_overrides(TrainConfig, ["jointnet_widths=32,64,wide"])
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_train_2d_without_network_then_train_jointnet_with_overrides(tmp_path):
+    model = tmp_path / "image2d"
+    argv = ["train-2d", "--small", "--no-jointnet", "--no-eval", "--out", str(model)]
+    assert cli(argv) == 0
+    assert json.loads((model / "manifest.json").read_text())["jointnet"] is None
+    argv = ["train-jointnet", "--model", str(model), "--no-eval", "--set", "jointnet_epochs=1"]
+    assert cli([*argv, "--set", "jointnet_widths=8,16,24", "--set", "jointnet_blocks=1,1,1"]) == 0
+    manifest = json.loads((model / "manifest.json").read_text())
+    assert manifest["jointnet_shape"] == {"widths": [8, 16, 24], "blocks": [1, 1, 1]}
+    assert manifest["train_config"]["jointnet_epochs"] == 1
+    assert not (model / "checkpoint").exists()
+    est = PoseEstimator2D.load(model)
+    assert est.jointnet is not None
+    res = est.estimate([np.zeros((120, 80, 3), dtype=np.uint8)])
+    assert bool(torch.isfinite(res.joints_2d).all())
