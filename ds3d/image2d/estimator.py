@@ -143,15 +143,7 @@ class PoseEstimator2D:
         full = self._first_trees(p.trees)  # the full pass's layers
         if len(scales) > 1 and p.scale_choice == "network" and with_net:
             choice, base, logits = self._network_scales(crops, scales, timings)
-            parts = []
-            for k in choice.unique().tolist():
-                rows = torch.nonzero(choice == k).view(-1).tolist()
-                reuse = [logits[i] for i in rows] if k == base else None
-                part = self._one_scale(
-                    [crops[i] for i in rows], scales[k], full, p, timings, logits=reuse
-                )
-                parts.append((torch.tensor(rows), part))
-            best = gather_rows(parts, len(crops))
+            best = self._chosen_scales(crops, scales, choice, full, timings, base, logits)
         elif len(scales) == 1 or p.scale_choice == "every":
             best = None
             for rel in scales:
@@ -173,14 +165,32 @@ class PoseEstimator2D:
                 ]
             )
             choice = score.argmax(dim=0)  # (B,) index into scales
-            parts = []
-            for k in choice.unique().tolist():
-                rows = torch.nonzero(choice == k).view(-1)
-                part = self._one_scale([crops[i] for i in rows], scales[k], full, p, timings)
-                parts.append((rows, part))
-            best = gather_rows(parts, len(crops))
+            best = self._chosen_scales(crops, scales, choice, full, timings)
         best.timings = timings
         return best
+
+    def _chosen_scales(
+        self,
+        crops: list[Crop],
+        scales: list[float],
+        choice: torch.Tensor,
+        layers: list[Forest],
+        timings: dict[str, float],
+        base: int | None = None,
+        base_logits: list[torch.Tensor] | None = None,
+    ) -> Estimate2D:
+        """The full pass of each crop at its chosen scale, choice (B,) an index into scales:
+        one _one_scale per scale chosen, on its crops. base_logits: each crop's padded_logits
+        at scales[base], reused by the crops whose choice is the base."""
+        parts = []
+        for k in choice.unique().tolist():
+            rows = torch.nonzero(choice == k).view(-1)
+            reuse = [base_logits[i] for i in rows.tolist()] if k == base else None
+            part = self._one_scale(
+                [crops[i] for i in rows], scales[k], layers, self.params, timings, logits=reuse
+            )
+            parts.append((rows, part))
+        return gather_rows(parts, len(crops))
 
     def _network_scales(
         self, crops: list[Crop], scales: list[float], timings: dict[str, float]
