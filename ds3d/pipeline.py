@@ -45,7 +45,7 @@ STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate
 @dataclass(frozen=True)
 class PipelineConfig(RefineParams):
     """Parameters of the image-driven steps (the 3D stage's are in LifterConfig): the
-    refinement's (RefineParams), the number of iterations (the paper's 2; with today's 2D stage
+    refinement's (RefineParams), the number of iterations (the paper's 2; with the bundled 2D stage
     the second adds nothing measurable: docs/RESULTS.md) and how the joint set is chosen:
     "posterior" (eqt:best_segments_pose) or "energy" (eq:energyS; the refined pose is then the
     chosen set's PSM MAP)."""

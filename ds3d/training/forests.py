@@ -30,6 +30,7 @@ from ds3d.image2d.forest import Forest
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
 from ds3d.skeleton import NUM_JOINTS
+from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
 from ds3d.training.images import TrainingImage, load_training_image, observer_centric
 from ds3d.training.trees import fit_tree, stack_trees
@@ -195,7 +196,5 @@ def grow_cascade(
                 "rng": rng.bit_generator.state,
                 "seconds": timings[f"layer{depth}"],
             }
-            saved.parent.mkdir(parents=True, exist_ok=True)
-            torch.save(state, saved.with_name(saved.name + ".partial"))
-            saved.with_name(saved.name + ".partial").replace(saved)
+            save_checkpoint(state, saved)
     return layers, timings

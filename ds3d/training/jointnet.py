@@ -31,6 +31,7 @@ from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet, JointNetShape
 from ds3d.image2d.params import EstimatorParams
 from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
 from ds3d.training.images import load_training_image
 
@@ -146,7 +147,7 @@ def train_jointnet(
 
 
 def _save_checkpoint(path: Path, run: dict, epoch: int, seconds: float, net, opt, schedule):
-    """The training state after `epoch` epochs (`seconds` in all), written whole or not at all."""
+    """The training state after `epoch` epochs (`seconds` in all)."""
     state = {
         "run": run,
         "epoch": epoch,
@@ -156,10 +157,7 @@ def _save_checkpoint(path: Path, run: dict, epoch: int, seconds: float, net, opt
         "schedule": schedule.state_dict(),
         "rng": torch.get_rng_state(),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    torch.save(state, partial)
-    partial.replace(path)
+    save_checkpoint(state, path)
 
 
 def _resume(path: Path, run: dict, net, opt, schedule) -> tuple[int, float]:
