@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from ds3d.fit.bones import bone_lengths
 from ds3d.fit.camera import CameraFrame, image_frame, project, rotation_matrix
 from ds3d.fit.energy import projection_energy
 from ds3d.fit.selection import set_energy, top_weighted
@@ -30,8 +31,7 @@ from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import JOINT_SETS, SET_NAMES, hip_midpoint, joint_set_mask
-from ds3d.threads import map_on_threads, split_rows
+from ds3d.skeleton import SET_NAMES, hip_midpoint, joint_set_mask
 from ds3d.timing import stage_timer
 
 
@@ -46,18 +46,16 @@ class LifterConfig:
     pca_components: int = 18
     joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
     omega: EnergyWeights = field(default_factory=EnergyWeights)
-    projection_iterations: int = 5  # L-BFGS steps of eq:projerr1 (more gain next to nothing)
-    pose_iterations: int = 15  # L-BFGS steps of eq:energyMin2
+    # eq:projerr1 on the nearest neighbours only: M is six numbers, which a few dozen poses
+    # seen from nearly the same view pin down as well as all K
+    projection_neighbours: int = 32
+    projection_iterations: int = 5  # Gauss-Newton steps of eq:projerr1
+    pose_iterations: int = 10  # Gauss-Newton steps of eq:energyMin2
+    proportions: bool = True  # estimate the person's bone-group scales (False: the database's)
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
     # own joints, as written, which lets small sets win by fitting fewer joints.
     select_on_all_joints: bool = True
     index: IndexConfig = field(default_factory=IndexConfig)
-
-
-# Poses per batch below which fit_projections fits every set in one call: each L-BFGS call costs
-# tens of small ops per step, whatever its size, so small batches are bound by the calls'
-# overhead, large ones by the work (the crossover: docs/RESULTS.md, "How parameters were chosen").
-ONE_FIT_BELOW = 8
 
 
 @dataclass(frozen=True)
@@ -89,11 +87,13 @@ class Neighbours:
 @dataclass
 class LiftResult:
     """joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the
-    camera), root at the hip midpoint. joint_set: the chosen set per pose. energy: (B,) the
-    chosen set's eq:energyS value. set_energies: (B, S). projection: (B, 6) M^ (ds3d.fit.camera).
-    timings_ms: wall time of each stage for the whole batch."""
+    camera), root at the hip midpoint. bone_lengths: (B, 14) mm, ds3d.skeleton.BONE_NAMES order,
+    the person's (LifterConfig.proportions) or the database's. joint_set: the chosen set per
+    pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S). projection:
+    (B, 6) M^ (ds3d.fit.camera). timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
+    bone_lengths: torch.Tensor
     joint_set: list[str]
     energy: torch.Tensor
     set_energies: torch.Tensor
@@ -150,15 +150,16 @@ class Lifter:
         with torch.no_grad(), stage_timer(timings, "selection", self.device):
             kept, weights, kept_residuals = self.weight_neighbours(found.poses, -found.residuals)
             energies, best = self.choose_set(kept, weights, kept_residuals, found.params, query)
-        with stage_timer(timings, "pose_fit", self.device):
-            pose = self.fit_pose(kept, weights, found.params, query, best)
+        with torch.no_grad(), stage_timer(timings, "pose_fit", self.device):
+            pose, projection = self.fit_pose(kept, weights, found.params, query, best)
         rows = torch.arange(len(best), device=self.device)
         return LiftResult(
-            joints_3d=pose.detach().cpu(),
+            joints_3d=pose.cpu(),
+            bone_lengths=bone_lengths(pose).cpu(),
             joint_set=[self.config.joint_sets[i] for i in best.tolist()],
             energy=energies[rows, best].cpu(),
             set_energies=energies.cpu(),
-            projection=found.params[rows, best].cpu(),
+            projection=projection.cpu(),
             timings_ms=timings,
         )
 
@@ -213,12 +214,13 @@ class Lifter:
         complete = (masks == self.set_masks).all(-1)
         return complete | ~complete.any(-1, keepdim=True)
 
-    def fit_pose(self, kept, weights, params, query: Query, best) -> torch.Tensor:
+    def fit_pose(self, kept, weights, params, query: Query, best):
         """eq:energyMin2 on the chosen set `best` (B,) of each pose. kept: (B, S, K_w, 14, 3);
-        weights: (B, S, K_w); params: (B, S, 6). Returns (B, 14, 3) mm, camera-oriented, root
-        at the hip midpoint."""
+        weights: (B, S, K_w); params: (B, S, 6). Returns the pose (B, 14, 3) mm,
+        camera-oriented, root at the hip midpoint, with the person's proportions, and its
+        projection (B, 6)."""
         rows = torch.arange(len(best), device=best.device)
-        pose = fit_pose(
+        pose, projection = fit_pose(
             kept[rows, best],
             weights[rows, best],
             params[rows, best],
@@ -228,48 +230,28 @@ class Lifter:
             self.config.omega,
             self.config.pca_components,
             self.config.pose_iterations,
+            self.config.proportions,
         )
-        oriented = pose @ rotation_matrix(params[rows, best, :3]).transpose(-1, -2)
-        return oriented - hip_midpoint(oriented)[:, None]
+        oriented = pose @ rotation_matrix(projection[:, :3]).transpose(-1, -2)
+        return oriented - hip_midpoint(oriented)[:, None], projection
 
     def fit_projections(self, candidates, query: Query, start=None):
-        """eq:projerr1 for every (pose, set). candidates: (B, S, K, 14, 3); start: optional
-        (B, S, 6). Returns params (B, S, 6) and residuals (B, S, K). Below ONE_FIT_BELOW poses,
-        all B * S problems are one L-BFGS call on all 14 joints, the set's own masked; from it
-        on, one call per set on its own joints only (a third less work than masking, which pays
-        once the work outweighs the calls' overhead), the sets shared out between the threads
-        (ds3d.threads: small L-BFGS ops gain little from intra-op threads, whole calls do)."""
+        """eq:projerr1 for every (pose, set), all B * S problems in one solve on all 14 joints,
+        each set's own masked, on the set's `projection_neighbours` nearest neighbours.
+        candidates: (B, S, K, 14, 3); start: optional (B, S, 6). Returns params (B, S, 6) and
+        the residuals of all K neighbours under them (B, S, K)."""
         b, n_sets = candidates.shape[:2]
-        joints_2d, visible, frame = query.joints_2d, query.visible, query.frame
-        if b < ONE_FIT_BELOW:
-            params, residuals = fit_projection(
-                candidates.flatten(0, 1),
-                joints_2d.repeat_interleave(n_sets, 0),
-                (self.set_masks[None] * visible[:, None].float()).flatten(0, 1),
-                frame.repeat(n_sets),
-                None if start is None else start.flatten(0, 1),
-                self.config.projection_iterations,
-            )
-            return params.view(b, n_sets, -1), residuals.view(b, n_sets, -1)
-
-        def fit_sets(sets: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-            out = []
-            for s in sets.tolist():
-                joints = list(JOINT_SETS[self.config.joint_sets[s]])
-                out.append(
-                    fit_projection(
-                        candidates[:, s][:, :, joints],
-                        joints_2d[:, joints],
-                        visible[:, joints].float(),
-                        frame,
-                        None if start is None else start[:, s],
-                        self.config.projection_iterations,
-                    )
-                )
-            return out
-
-        fitted = [fit for part in map_on_threads(fit_sets, split_rows(n_sets)) for fit in part]
-        return torch.stack([p for p, _ in fitted], 1), torch.stack([r for _, r in fitted], 1)
+        masks = self.set_masks[None] * query.visible[:, None].float()  # (B, S, 14)
+        params = fit_projection(
+            candidates[:, :, : self.config.projection_neighbours].flatten(0, 1),
+            query.joints_2d.repeat_interleave(n_sets, 0),
+            masks.flatten(0, 1),
+            query.frame.repeat(n_sets),
+            None if start is None else start.flatten(0, 1),
+            self.config.projection_iterations,
+        ).view(b, n_sets, -1)
+        projected = project(candidates, params, query.frame.unsqueeze(1))
+        return params, projection_energy(projected, query.joints_2d[:, None], masks)
 
     def weight_neighbours(self, candidates, scores):
         """eq:wt/eq:wtn. candidates: (B, S, K, 14, 3); scores: (B, S, K), higher is better.

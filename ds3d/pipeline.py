@@ -187,7 +187,7 @@ class Pipeline:
             energies.append(-best.score)
 
         with stage_timer(timings, "pose_fit", dev):
-            pose = lifter.fit_pose(best.kept, best.weights, best.params, query, best.joint_set)
+            pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, query, best.joint_set)
         x = query.joints_2d
         with torch.no_grad():
             probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS

@@ -54,6 +54,36 @@ PARENT: tuple[int, ...] = (
 # Limbs (child, parent): the 13 edges of the kinematic tree; E_a compares their lengths.
 LIMBS: tuple[tuple[int, int], ...] = tuple((i, p) for i, p in enumerate(PARENT) if p >= 0)
 
+# The bones of a person's proportions: a tree rooted at the hip midpoint (ROOT, not a joint), as
+# (child, parent, scale group). A pose's bone lengths (ds3d.fit.bones) are in this order; the
+# lifter estimates one scale per group, the same for left and right.
+ROOT = -1
+BONES: tuple[tuple[int, int, str], ...] = (
+    (R_HIP, ROOT, "pelvis"),
+    (L_HIP, ROOT, "pelvis"),
+    (NECK, ROOT, "spine"),
+    (HEAD_TOP, NECK, "head"),
+    (R_SHOULDER, NECK, "collar"),
+    (L_SHOULDER, NECK, "collar"),
+    (R_ELBOW, R_SHOULDER, "upper_arm"),
+    (L_ELBOW, L_SHOULDER, "upper_arm"),
+    (R_WRIST, R_ELBOW, "forearm"),
+    (L_WRIST, L_ELBOW, "forearm"),
+    (R_KNEE, R_HIP, "thigh"),
+    (L_KNEE, L_HIP, "thigh"),
+    (R_ANKLE, R_KNEE, "shin"),
+    (L_ANKLE, L_KNEE, "shin"),
+)
+
+
+def _bone_name(child: int, group: str) -> str:
+    side = JOINT_NAMES[child].split("_")[0]
+    return f"{side}_{group}" if side in ("left", "right") else group
+
+
+BONE_NAMES: tuple[str, ...] = tuple(_bone_name(child, group) for child, _, group in BONES)
+BONE_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(group for _, _, group in BONES))
+
 # Left/right mirror: FLIP[i] is the joint that i becomes when the image is flipped horizontally.
 FLIP: tuple[int, ...] = (5, 4, 3, 2, 1, 0, 11, 10, 9, 8, 7, 6, 12, 13)
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
-from ds3d.cli.lift import load_lifter
+from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
 from ds3d.cli.pipeline import load_pipeline
 from ds3d.skeleton import SET_NAMES
@@ -34,6 +34,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, help="JSON report")
     add_model_options(p, threads=None, device=True)
+    add_set_option(p, LIFTER_OVERRIDE)
     p.set_defaults(func=bench_lift)
 
     b = benches.add_parser("2d", help="images/s of the 2D stage, time per step")

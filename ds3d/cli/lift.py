@@ -9,7 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ds3d.cli.parser import add_model_options, set_threads, write_report
+from ds3d.cli.parser import (
+    add_model_options,
+    add_set_option,
+    field_overrides,
+    set_threads,
+    write_report,
+)
+
+LIFTER_OVERRIDE = "override a LifterConfig field (ds3d.lifter), e.g. proportions=false or "
+LIFTER_OVERRIDE += "omega.proportions=20; repeatable"
 
 
 def register(commands, evals, benches) -> None:
@@ -22,6 +31,7 @@ def register(commands, evals, benches) -> None:
     )
     p.add_argument("--out", type=Path, help="result JSON (default: stdout)")
     add_model_options(p, threads=None, device=True)
+    add_set_option(p, LIFTER_OVERRIDE)
     p.set_defaults(func=lift)
 
     p = evals.add_parser("h36m", help="Human3.6M protocol with ground-truth 2D (S11)")
@@ -29,20 +39,28 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--stride", type=int, default=64, help="every n-th frame of each sequence")
     p.add_argument("--limit", type=int, help="evaluate only the first n test poses")
     p.add_argument(
+        "--proportions",
+        metavar="GROUP=SCALE,...",
+        help="the test subject's bone groups rescaled, e.g. "
+        "pelvis=0.5,thigh=1.1,shin=1.1,upper_arm=0.9,head=1.3 (groups: ds3d.skeleton.BONE_GROUPS)",
+    )
+    p.add_argument(
         "--variants",
         default="clean,noise5,noise10,outlier40,all-only,unweighted",
         help="comma-separated input/algorithm variants (ds3d.evaluation.h36m.VARIANTS)",
     )
     p.add_argument("--out", type=Path, help="JSON report")
     add_model_options(p, threads=None, device=True)
+    add_set_option(p, LIFTER_OVERRIDE)
     p.set_defaults(func=eval_h36m)
 
 
-def load_lifter(args, **overrides):
-    """The Lifter of --model-dir/--database on --device, with LifterConfig overrides."""
+def load_lifter(args):
+    """The Lifter of --model-dir/--database on --device, configured by --set."""
     from ds3d.lifter import Lifter, LifterConfig
 
     set_threads(args)
+    overrides = field_overrides(LifterConfig, getattr(args, "set", []))
     config = dataclasses.replace(LifterConfig(), **overrides)
     return Lifter.load(args.model_dir, args.device, config, args.database)
 
@@ -72,7 +90,15 @@ def eval_h36m(args) -> int:
     unknown = set(names) - set(VARIANTS)
     if unknown:
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(VARIANTS)}")
-    cases = protocol_cases(args.subject, args.stride)
+    proportions = dict(
+        (name, float(value))
+        for name, _, value in (item.partition("=") for item in (args.proportions or "").split(","))
+        if name
+    )
+    try:
+        cases = protocol_cases(args.subject, args.stride, proportions)
+    except ValueError as err:
+        raise SystemExit(f"--proportions: {err}") from None
     if args.limit:
         cases = cases.subset(np.arange(min(args.limit, len(cases))))
     lifter = load_lifter(args)
@@ -82,6 +108,7 @@ def eval_h36m(args) -> int:
         "database": args.database,
         "subject": args.subject,
         "stride": args.stride,
+        "proportions": proportions,
         "variants": {},
     }
     for name in names:

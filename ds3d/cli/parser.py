@@ -8,6 +8,7 @@ overrides of a dataclass's fields, and JSON reports.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import json
 import sys
@@ -74,11 +75,18 @@ def add_set_option(parser, text: str) -> None:
 def field_overrides(cls, items: list[str]) -> dict:
     """`--set NAME=VALUE` items -> {field: value} for the dataclass `cls`, each value converted
     to the field's annotated type (bools from true/false/1/0; `none` for optional fields).
-    Exits with a message on an unknown field or a value that does not convert."""
+    `NAME.FIELD=VALUE` sets a field of a nested dataclass (e.g. `omega.proportions=20`), the
+    others keeping cls()'s values. Exits with a message on an unknown field or a value that
+    does not convert."""
     types = typing.get_type_hints(cls)
-    out = {}
+    out: dict = {}
+    nested: dict[str, list[str]] = {}
     for item in items:
         key, _, value = item.partition("=")
+        outer, dot, inner = key.partition(".")
+        if dot and dataclasses.is_dataclass(types.get(outer)):
+            nested.setdefault(outer, []).append(f"{inner}={value}")
+            continue
         if key not in types:
             raise SystemExit(f"--set {item}: not a {cls.__name__} field ({', '.join(types)})")
         try:
@@ -86,6 +94,9 @@ def field_overrides(cls, items: list[str]) -> dict:
         except ValueError:
             name = getattr(types[key], "__name__", str(types[key]))
             raise SystemExit(f"--set {item}: {value!r} is not a {name}") from None
+    for outer, inner_items in nested.items():
+        default = getattr(cls(), outer)
+        out[outer] = dataclasses.replace(default, **field_overrides(type(default), inner_items))
     return out
 
 

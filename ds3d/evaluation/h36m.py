@@ -16,10 +16,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_sequences
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
-from ds3d.skeleton import NUM_JOINTS, hip_midpoint
+from ds3d.fit.bones import scaling_map
+from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
 
 
 @dataclass
@@ -40,13 +42,19 @@ class ProtocolCases:
         return ProtocolCases(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
 
-def protocol_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> ProtocolCases:
-    """Every `stride`-th frame of every sequence of `subject`, four cameras each."""
+def protocol_cases(
+    subject: str = TEST_SUBJECT, stride: int = 64, proportions: dict[str, float] | None = None
+) -> ProtocolCases:
+    """Every `stride`-th frame of every sequence of `subject`, four cameras each. proportions:
+    optional {bone group (ds3d.skeleton.BONE_GROUPS): scale}: the subject's bones so scaled
+    (the rest as they are) before the poses are seen by the cameras, a person of other
+    proportions in the same motion."""
     sequences = load_h36m_sequences((subject,))
     cameras = load_cameras()
+    scaling = None if not proportions else scaling_map(group_scales(proportions)).numpy()
     parts: dict[str, list] = {f: [] for f in ProtocolCases.__dataclass_fields__}
     for key, poses in sequences.items():
-        frames = poses[::stride]
+        frames = poses[::stride] if scaling is None else scaling @ poses[::stride]
         for cam_id in (1, 2, 3, 4):
             camera = cameras[(subject, cam_id)]
             in_camera = camera.to_camera(frames)
@@ -56,6 +64,15 @@ def protocol_cases(subject: str = TEST_SUBJECT, stride: int = 64) -> ProtocolCas
             parts["action"].append(np.full(len(frames), action_name(key.split("/")[1])))
             parts["camera"].append(np.full(len(frames), cam_id))
     return ProtocolCases(*(np.concatenate(parts[f]) for f in ProtocolCases.__dataclass_fields__))
+
+
+def group_scales(proportions: dict[str, float]) -> torch.Tensor:
+    """{bone group: scale} -> (G,) scales in BONE_GROUPS order, 1 for the groups not named.
+    Raises ValueError on an unknown group."""
+    unknown = set(proportions) - set(BONE_GROUPS)
+    if unknown:
+        raise ValueError(f"unknown bone groups {sorted(unknown)}; known: {', '.join(BONE_GROUPS)}")
+    return torch.tensor([float(proportions.get(g, 1.0)) for g in BONE_GROUPS])
 
 
 def perturb(

@@ -36,6 +36,42 @@ def rotation_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     return eye + a * skew + b * (skew @ skew)
 
 
+def rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
+    """The inverse of rotation_matrix: (..., 3, 3) -> (..., 3) radians, angle in [0, pi].
+    Through the unit quaternion, taken from the largest of its four candidate forms (Shepperd's
+    method), which keeps every angle well conditioned."""
+    m = rotation.flatten(-2).unbind(-1)  # m[3 * row + col]
+    trace_forms = torch.stack(
+        [
+            1 + m[0] + m[4] + m[8],
+            1 + m[0] - m[4] - m[8],
+            1 - m[0] + m[4] - m[8],
+            1 - m[0] - m[4] + m[8],
+        ],
+        -1,
+    )
+    root = trace_forms.clamp_min(0).sqrt()  # 2 |q_i| of each quaternion component i
+    forms = torch.stack(
+        [
+            torch.stack([root[..., 0] ** 2, m[7] - m[5], m[2] - m[6], m[3] - m[1]], -1),
+            torch.stack([m[7] - m[5], root[..., 1] ** 2, m[3] + m[1], m[2] + m[6]], -1),
+            torch.stack([m[2] - m[6], m[3] + m[1], root[..., 2] ** 2, m[5] + m[7]], -1),
+            torch.stack([m[3] - m[1], m[6] + m[2], m[7] + m[5], root[..., 3] ** 2], -1),
+        ],
+        -2,
+    ) / (2 * root[..., None].clamp_min(0.1))  # each row: (w, x, y, z) up to a common factor
+    best = root.argmax(-1)[..., None, None].expand(*root.shape[:-1], 1, 4)
+    quaternion = torch.gather(forms, -2, best)[..., 0, :]
+    quaternion = quaternion * torch.where(quaternion[..., :1] < 0, -1.0, 1.0)  # w >= 0
+    w, v = quaternion[..., 0], quaternion[..., 1:]
+    sin_half = v.norm(dim=-1)
+    # angle / sin(angle / 2), with its limit 2 / w near zero
+    factor = torch.where(
+        sin_half > 1e-6, 2 * torch.atan2(sin_half, w) / sin_half.clamp_min(1e-12), 2 / w
+    )
+    return factor[..., None] * v
+
+
 @dataclass
 class CameraFrame:
     """What stays fixed while M is fitted, per problem (leading dims ...).
@@ -64,20 +100,70 @@ class CameraFrame:
 def project(points: torch.Tensor, params: torch.Tensor, frame: CameraFrame) -> torch.Tensor:
     """points: (..., N, J, 3) mm; params: (..., 6); frame with leading dims (...).
     Returns (..., N, J, 2) px."""
-    rot = rotation_matrix(params[..., :3])
-    a, b, w = params[..., 3:4], params[..., 4:5], params[..., 5:6]
+    return project_rotated(rotate(points, rotation_matrix(params[..., :3])), params[..., 3:], frame)
+
+
+def rotate(points: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """points: (..., N, J, 3); rotation: (..., 3, 3). Returns R X, (..., N, J, 3)."""
     # One (N*J, 3) @ (3, 3) product per problem: far faster than N*J tiny batched products.
-    rotated = (points.flatten(-3, -2) @ rot.transpose(-1, -2)).reshape(points.shape)
+    return (points.flatten(-3, -2) @ rotation.transpose(-1, -2)).reshape(points.shape)
+
+
+def project_rotated(
+    rotated: torch.Tensor, shift: torch.Tensor, frame: CameraFrame, jacobian: bool = False
+):
+    """The projection of points already rotated by M's rotation.
+
+    rotated: (..., N, J, 3) mm, R X; shift: (..., 3) M's (a, b, w). Returns uv (..., N, J, 2) px,
+    and with `jacobian` also d uv / d rotated (..., N, J, 2, 3) and d uv / d (a, b, w)
+    (..., N, J, 2, 3).
+    """
+    a, b, w = shift[..., 0:1], shift[..., 1:2], shift[..., 2:3]
+    spread = frame.spread[..., None, None, None]
     if frame.intrinsics is None:
-        xy = torch.exp(w)[..., None, None] * rotated[..., :2] / DEPTH_UNIT
-        xy = xy + torch.cat([a, b], -1)[..., None, None, :]
-        return frame.centre[..., None, None, :] + frame.spread[..., None, None, None] * xy
+        size = torch.exp(w)[..., None, None] / DEPTH_UNIT
+        xy = size * rotated[..., :2] + torch.cat([a, b], -1)[..., None, None, :]
+        uv = frame.centre[..., None, None, :] + spread * xy
+        if not jacobian:
+            return uv
+        zero = torch.zeros_like(rotated[..., 0])
+        one = torch.ones_like(zero)
+        d_points = (spread * size)[..., None] * torch.eye(2, 3, dtype=uv.dtype, device=uv.device)
+        d_shift = spread[..., None] * torch.stack(
+            [one, zero, size[..., 0] * rotated[..., 0], zero, one, size[..., 0] * rotated[..., 1]],
+            -1,
+        ).unflatten(-1, (2, 3))
+        return uv, d_points.expand(*uv.shape, 3), d_shift
     focal, principal = _focal_principal(frame.intrinsics)
     offset = torch.cat([a, b], -1) * frame.spread[..., None] / focal
-    shift = torch.exp(w) * DEPTH_UNIT * torch.cat([offset, torch.ones_like(a)], -1)
-    cam = rotated + shift[..., None, None, :]
+    depth = torch.exp(w) * DEPTH_UNIT
+    move = depth * torch.cat([offset, torch.ones_like(a)], -1)  # (..., 3) mm
+    cam = rotated + move[..., None, None, :]
     z = cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
-    return focal[..., None, None, :] * cam[..., :2] / z + principal[..., None, None, :]
+    f = focal[..., None, None, :]
+    uv = f * cam[..., :2] / z + principal[..., None, None, :]
+    if not jacobian:
+        return uv
+    zero = torch.zeros_like(z[..., 0])
+    fz = f / z  # (..., N, J, 2)
+    d_points = torch.stack(
+        [
+            fz[..., 0],
+            zero,
+            -(uv[..., 0] - principal[..., None, None, 0]) / z[..., 0],
+            zero,
+            fz[..., 1],
+            -(uv[..., 1] - principal[..., None, None, 1]) / z[..., 0],
+        ],
+        -1,
+    ).unflatten(-1, (2, 3))
+    scale = depth * frame.spread[..., None] / focal  # (..., 2): d move_xy / d (a, b)
+    no = torch.zeros_like(depth[..., 0])
+    d_move = torch.stack(
+        [scale[..., 0], no, move[..., 0], no, scale[..., 1], move[..., 1], no, no, move[..., 2]],
+        -1,
+    ).unflatten(-1, (3, 3))  # (..., 3, 3): d move / d (a, b, w)
+    return uv, d_points, d_points @ d_move[..., None, None, :, :]
 
 
 def _focal_principal(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

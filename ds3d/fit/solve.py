@@ -1,9 +1,12 @@
-"""The two continuous fits of the paper, each a batch of small L-BFGS problems.
+"""The two continuous fits of the paper, each a batch of small robust least-squares problems
+solved by ds3d.fit.gauss_newton with analytic Jacobians.
 
 - fit_projection (eq:projerr1): the projection M_s that best maps a set's K retrieved poses onto
   the 2D pose, one problem per (image, joint set).
 - fit_pose (eq:energyMin2): the 3D pose, in the PCA space of the weighted neighbours, that
-  minimises w_p E_p + w_r E_r + w_a E_a with the chosen projection held fixed.
+  minimises w_p E_p + w_r E_r + w_a E_a with the chosen projection held fixed; and, beyond the
+  paper, the person's proportions: one scale per bone group (ds3d.fit.bones), held near the
+  database's by a Gaussian prior on its logarithm.
 """
 
 from __future__ import annotations
@@ -11,10 +14,33 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
-from ds3d.fit.camera import CameraFrame, initial_params, project
-from ds3d.fit.energy import limb_lengths, projection_energy, weighted_robust_distance
-from ds3d.fit.lbfgs import minimize
+from ds3d.fit import gauss_newton
+from ds3d.fit.bones import GROUP_LOG_SD, scale_derivatives, scaling_map
+from ds3d.fit.camera import (
+    CameraFrame,
+    initial_params,
+    project_rotated,
+    rotate,
+    rotation_matrix,
+    rotation_vector,
+)
+from ds3d.fit.energy import limb_lengths
+from ds3d.fit.gauss_newton import Residuals
+from ds3d.skeleton import BONE_GROUPS, LIMBS, NUM_JOINTS
+
+
+def joint_weights(mask: torch.Tensor) -> torch.Tensor:
+    """E_p's per-joint weights: the mask rescaled to 14 joints (ds3d.fit.energy). (..., 14)."""
+    return mask * (NUM_JOINTS / mask.sum(-1, keepdim=True).clamp_min(1))
+
+
+def rotation_jacobian(rotated: torch.Tensor) -> torch.Tensor:
+    """d (exp(d) R X) / d d at d = 0: -[R X]_x. rotated: (..., 3) -> (..., 3, 3)."""
+    x, y, z = rotated.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, z, -y, -z, zero, x, y, -x, zero], -1).unflatten(-1, (3, 3))
 
 
 def fit_projection(
@@ -23,26 +49,48 @@ def fit_projection(
     mask: torch.Tensor,
     frame: CameraFrame,
     start: torch.Tensor | None = None,
-    iterations: int = 20,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """eq:projerr1 for P independent problems.
+    iterations: int = 5,
+) -> torch.Tensor:
+    """eq:projerr1 for P independent problems: the mean over the K neighbours of E_p.
 
     candidates: (P, K, 14, 3) mm, camera-oriented; joints_2d: (P, 14, 2) px; mask: (P, 14) float
     (the set's visible joints); frame: leading dim P; start: optional (P, 6) warm start.
-    Returns params (P, 6) and the per-candidate projection energies (P, K) at the optimum.
+    Returns params (P, 6).
     """
     if start is None:
         start = initial_params(candidates, joints_2d, mask, frame)
+    evaluate = projection_problem(candidates, joints_2d, mask, frame)
+    state = torch.cat([rotation_matrix(start[:, :3]).flatten(1), start[:, 3:]], 1)
+    state, _ = gauss_newton.minimize(evaluate, state, iterations, retract=turn)
+    return torch.cat([rotation_vector(state[:, :9].view(-1, 3, 3)), state[:, 9:]], 1)
 
-    def energy(params: torch.Tensor) -> torch.Tensor:
-        # The mean over the K neighbours: the paper's sum / K, which keeps gradients O(1).
-        projected = project(candidates, params, frame)
-        return projection_energy(projected, joints_2d, mask).mean(-1)
 
-    params, _ = minimize(energy, start, iterations=iterations)
-    with torch.no_grad():
-        per_candidate = projection_energy(project(candidates, params, frame), joints_2d, mask)
-    return params, per_candidate
+def projection_problem(candidates, joints_2d, mask, frame: CameraFrame) -> gauss_newton.Evaluate:
+    """eq:projerr1's residuals as ds3d.fit.gauss_newton takes them (arguments as fit_projection).
+    The state (P, 12) is (R (9), a, b, w); its unknowns (P, 6) are (d, a, b, w), a rotation
+    being moved as exp(d) R (`turn`), never through the axis-angle's own derivative."""
+    root_weight = joint_weights(mask).sqrt()[:, None, :, None]  # (P, 1, 14, 1)
+    term_weight = candidates.new_full(candidates.shape[:2], 1.0 / candidates.shape[1])
+
+    def evaluate(state: torch.Tensor, with_jacobian: bool) -> list[Residuals]:
+        rotated = rotate(candidates, state[:, :9].view(-1, 3, 3))
+        out = project_rotated(rotated, state[:, 9:], frame, with_jacobian)
+        uv = out[0] if with_jacobian else out
+        value = ((uv - joints_2d[:, None]) * root_weight).flatten(2)  # (P, K, 28)
+        if not with_jacobian:
+            return [Residuals(term_weight, value)]
+        _, d_points, d_shift = out
+        d_rotation = d_points @ rotation_jacobian(rotated)  # (P, K, 14, 2, 3)
+        jacobian = torch.cat([d_rotation, d_shift], -1) * root_weight[..., None]
+        return [Residuals(term_weight, value, jacobian.flatten(2, 3))]
+
+    return evaluate
+
+
+def turn(state: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """State (P, 12) = (R, a, b, w) moved by step (P, 6) = (d, da, db, dw): R -> exp(d) R."""
+    rotation = rotation_matrix(step[:, :3]) @ state[:, :9].view(-1, 3, 3)
+    return torch.cat([rotation.flatten(1), state[:, 9:] + step[:, 3:]], 1)
 
 
 def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
@@ -60,11 +108,26 @@ def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
 
 @dataclass(frozen=True)
 class EnergyWeights:
-    """omega_p, omega_r, omega_a of eq:energyMin (the paper's values)."""
+    """omega_p, omega_r, omega_a of eq:energyMin (the paper's values), and omega_g, the weight
+    of the prior on the person's bone-group scales: omega_g * sum_g (log scale_g / sd_g)^2,
+    sd_g from ds3d.fit.bones.GROUP_LOG_SD normalised to an RMS of one (omega_g chosen on S9 with
+    a database without S9: docs/RESULTS.md)."""
 
     projection: float = 0.55
     retrieval: float = 0.35
     anthropometric: float = 0.065
+    proportions: float = 0.7
+
+
+def _limb_matrix() -> torch.Tensor:
+    """(13, 14): limb vectors (child minus parent, ds3d.skeleton.LIMBS) from joints."""
+    matrix = torch.zeros(len(LIMBS), NUM_JOINTS)
+    for i, (child, parent) in enumerate(LIMBS):
+        matrix[i, child], matrix[i, parent] = 1.0, -1.0
+    return matrix
+
+
+LIMB_MATRIX = _limb_matrix()
 
 
 def fit_pose(
@@ -76,30 +139,118 @@ def fit_pose(
     frame: CameraFrame,
     omega: EnergyWeights = EnergyWeights(),
     components: int = 18,
-    iterations: int = 30,
-) -> torch.Tensor:
-    """eq:energyMin2 for B problems.
+    iterations: int = 10,
+    proportions: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """eq:energyMin2 for B problems, with the person's bone-group scales when `proportions`.
 
     neighbours: (B, K, 14, 3) mm camera-oriented; weights: (B, K) in [0, 1]; params: (B, 6) the
-    chosen projection (fixed); joints_2d: (B, 14, 2) px; mask: (B, 14) float, the joints E_p uses.
-    Returns the pose (B, 14, 3) mm in the neighbours' orientation.
+    chosen projection; joints_2d: (B, 14, 2) px; mask: (B, 14) float, the joints E_p uses.
+    E_r and E_a hold the pose in the database's proportions near the neighbours; E_p sees it
+    with the person's. Returns that pose (B, 14, 3) mm in the neighbours' orientation and the
+    projection (B, 6): the given one, its position and depth refitted with the proportions
+    (a person's size and distance are one unknown in an image; the prior on the scales, which
+    prefers the database's proportions, settles it).
     """
-    mean, basis, sigma = weighted_pca(neighbours, weights, components)
-    # Coefficients in standard deviations: every direction has the same scale for L-BFGS.
-    scaled_basis = basis * sigma.clamp_min(1e-3)[..., None]
-    neighbour_vectors = neighbours.flatten(-2)  # constant: computed once, not per evaluation
-    neighbour_limbs = limb_lengths(neighbours)
+    problem = PoseProblem(neighbours, weights, components, proportions)
+    evaluate = problem.residuals(params, joints_2d, mask, frame, omega)
+    z, _ = gauss_newton.minimize(evaluate, problem.start(), iterations)
+    return problem.person(z), problem.projection(z, params)
 
-    def pose_of(coefficients: torch.Tensor) -> torch.Tensor:
-        return (mean + (coefficients[:, None, :] @ scaled_basis)[:, 0]).reshape(-1, 14, 3)
 
-    def energy(coefficients: torch.Tensor) -> torch.Tensor:
-        pose = pose_of(coefficients)[:, None]  # (B, 1, 14, 3)
-        e_p = projection_energy(project(pose, params, frame), joints_2d, mask)[:, 0]
-        e_r = weighted_robust_distance(pose.flatten(-2), neighbour_vectors, weights)[:, 0]
-        e_a = weighted_robust_distance(limb_lengths(pose), neighbour_limbs, weights)[:, 0]
-        return omega.projection * e_p + omega.retrieval * e_r + omega.anthropometric * e_a
+class PoseProblem:
+    """eq:energyMin2's unknowns z (B, C + G + T): C PCA coefficients of the weighted
+    neighbours, in standard deviations (every direction the same scale for the solver); with
+    `proportions`, G log scales of the bone groups and T = 3 changes of the projection's
+    (a, b, w) (none of either without)."""
 
-    start = mean.new_zeros(len(mean), scaled_basis.shape[-2])
-    coefficients, _ = minimize(energy, start, iterations=iterations)
-    return pose_of(coefficients)
+    def __init__(self, neighbours, weights, components: int, proportions: bool):
+        self.neighbours = neighbours
+        self.share = weights / weights.sum(-1, keepdim=True).clamp_min(1e-12)  # weighted means
+        mean, basis, sigma = weighted_pca(neighbours, weights, components)
+        self.mean = mean.unflatten(-1, (NUM_JOINTS, 3))  # (B, 14, 3)
+        self.basis = (basis * sigma.clamp_min(1e-3)[..., None]).unflatten(-1, (NUM_JOINTS, 3))
+        self.components = c = self.basis.shape[1]
+        self.groups = g = len(BONE_GROUPS) if proportions else 0
+        self.shifts = 3 if proportions else 0
+        self.scale_columns = slice(c, c + g)
+        self.shift_columns = slice(c + g, c + g + self.shifts)
+
+    def start(self) -> torch.Tensor:
+        unknowns = self.components + self.groups + self.shifts
+        return self.mean.new_zeros(len(self.mean), unknowns)
+
+    def pose(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, 14, 3) mm: the pose in the database's proportions."""
+        return self.mean + torch.einsum("bc,bcjd->bjd", z[:, : self.components], self.basis)
+
+    def person(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, 14, 3) mm: the pose with the person's bone-group scales."""
+        pose = self.pose(z)
+        return scaling_map(z[:, self.scale_columns].exp()) @ pose if self.groups else pose
+
+    def projection(self, z: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+        """(B, 6): params with z's changes of (a, b, w)."""
+        if not self.shifts:
+            return params
+        return torch.cat([params[:, :3], params[:, 3:] + z[:, self.shift_columns]], 1)
+
+    def residuals(self, params, joints_2d, mask, frame: CameraFrame, omega: EnergyWeights):
+        """The energy's residuals as ds3d.fit.gauss_newton takes them: E_p of the person under
+        the projection params (B, 6), E_r and E_a of the pose, the prior on the scales."""
+        b, c, g = len(self.mean), self.components, self.groups
+        n = c + g + self.shifts
+        rotation = rotation_matrix(params[:, :3])
+        root_weight = joint_weights(mask).sqrt()[..., None, None]  # (B, 14, 1, 1)
+        neighbour_vectors = self.neighbours.flatten(-2)
+        neighbour_limbs = limb_lengths(self.neighbours)
+        limb_matrix = LIMB_MATRIX.to(self.mean)
+        ones = self.mean.new_ones(b, 1)
+        # Jacobians of the terms that only the pose moves: zero beyond its coefficients
+        d_pose = F.pad(self.basis.flatten(2).transpose(1, 2), (0, n - c))[:, None]  # (B,1,42,n)
+        # the scales' prior in units of each group's spread, normalised to an RMS of one
+        prior_sd = GROUP_LOG_SD.to(self.mean)[:g] / GROUP_LOG_SD.pow(2).mean().sqrt()
+        prior_jacobian = torch.eye(g, n, dtype=self.mean.dtype, device=self.mean.device)
+        prior_jacobian = (prior_jacobian.roll(c, -1) / prior_sd[:, None]).expand(b, 1, g, n)
+
+        def evaluate(z: torch.Tensor, with_jacobian: bool) -> list[Residuals]:
+            pose, scales = self.pose(z), z[:, self.scale_columns].exp()
+            scaling = scaling_map(scales) if g else None
+            person = scaling @ pose if g else pose
+            shift = self.projection(z, params)[:, 3:]
+            out = project_rotated(rotate(person[:, None], rotation), shift, frame, with_jacobian)
+            uv = (out[0] if with_jacobian else out)[:, 0]
+            limb_vectors = limb_matrix @ pose  # (B, 13, 3)
+            limbs = limb_vectors.norm(dim=-1)
+            groups = [
+                Residuals(
+                    omega.projection * ones,
+                    ((uv - joints_2d) * root_weight[..., 0]).flatten(1)[:, None],  # (B, 1, 28)
+                ),
+                Residuals(
+                    omega.retrieval * self.share, pose.flatten(1)[:, None] - neighbour_vectors
+                ),
+                Residuals(omega.anthropometric * self.share, limbs[:, None] - neighbour_limbs),
+            ]
+            if g:
+                scale_prior = (z[:, self.scale_columns] / prior_sd)[:, None]
+                groups.append(Residuals(omega.proportions * ones, scale_prior, robust=False))
+            if not with_jacobian:
+                return groups
+            d_person = self.basis.permute(0, 2, 3, 1)  # (B, 14, 3, C)
+            if g:
+                through_scaling = (scaling @ d_person.flatten(2)).view(b, NUM_JOINTS, 3, c)
+                d_person = torch.cat([through_scaling, scale_derivatives(pose, scales)], -1)
+            d_uv = (out[1][:, 0] @ rotation[:, None]) @ d_person  # (B, 14, 2, C + G)
+            if self.shifts:
+                d_uv = torch.cat([d_uv, out[2][:, 0]], -1)
+            groups[0].jacobian = (d_uv * root_weight).flatten(1, 2)[:, None]
+            groups[1].jacobian = d_pose
+            unit = limb_vectors / limbs.clamp_min(1e-6)[..., None]  # (B, 13, 3)
+            d_limbs = torch.einsum("bld,lj,bcjd->blc", unit, limb_matrix, self.basis)
+            groups[2].jacobian = F.pad(d_limbs, (0, n - c))[:, None]
+            if g:
+                groups[3].jacobian = prior_jacobian
+            return groups
+
+        return evaluate
