@@ -17,6 +17,8 @@ camera frame), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,12 +51,16 @@ class LifterConfig:
     # eq:projerr1 on the nearest neighbours only: M is six numbers, which a few dozen poses
     # seen from nearly the same view pin down as well as all K
     projection_neighbours: int = 32
-    projection_iterations: int = 5  # Gauss-Newton steps of eq:projerr1
-    pose_iterations: int = 10  # Gauss-Newton steps of eq:energyMin2
+    projection_iterations: int = 3  # Gauss-Newton steps of eq:projerr1
+    pose_iterations: int = 6  # Gauss-Newton steps of eq:energyMin2
     proportions: bool = True  # estimate the person's bone-group scales (False: the database's)
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
     # own joints, as written, which lets small sets win by fitting fewer joints.
     select_on_all_joints: bool = True
+    # "hidden": the sets other than `all` are scored only for poses with a hidden joint (with
+    # every joint visible `all` is as good: docs/RESULTS.md, the joint-set ablation); "always":
+    # every set for every pose, as the paper.
+    partial_sets: str = "hidden"
     index: IndexConfig = field(default_factory=IndexConfig)
 
 
@@ -66,6 +72,10 @@ class Query:
     joints_2d: torch.Tensor
     visible: torch.Tensor
     frame: CameraFrame
+
+    def take(self, rows: torch.Tensor) -> Query:
+        """The poses `rows` (index into B)."""
+        return Query(self.joints_2d[rows], self.visible[rows], self.frame.take(rows))
 
     def moved_to(self, joints_2d: torch.Tensor) -> Query:
         """The same query with other 2D joints and the same frame (the pipeline's iterations:
@@ -89,7 +99,8 @@ class LiftResult:
     """joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the
     camera), root at the hip midpoint. bone_lengths: (B, 14) mm, ds3d.skeleton.BONE_NAMES order,
     the person's (LifterConfig.proportions) or the database's. joint_set: the chosen set per
-    pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S). projection:
+    pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S), sets in
+    `set_names` order, inf for a set not scored (LifterConfig.partial_sets). projection:
     (B, 6) M^ (ds3d.fit.camera). timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
@@ -99,6 +110,7 @@ class LiftResult:
     set_energies: torch.Tensor
     projection: torch.Tensor
     timings_ms: dict[str, float]
+    set_names: tuple[str, ...] = SET_NAMES
 
 
 class Lifter:
@@ -143,8 +155,59 @@ class Lifter:
 
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
-        optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose."""
+        optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose.
+        With config.partial_sets "hidden", a pose whose joints are all visible is lifted with
+        the set `all` alone, the others with every configured set."""
         query = self.query(joints_2d, visible, intrinsics)
+        if self.config.partial_sets == "always" or "all" not in self.config.joint_sets:
+            return self._lift(query)
+        complete = query.visible.all(-1)
+        if bool(complete.all()):
+            return self._restricted(("all",))._lift(query)
+        if not bool(complete.any()):
+            return self._lift(query)
+        rows = [complete.nonzero()[:, 0], (~complete).nonzero()[:, 0]]
+        parts = [
+            self._restricted(("all",))._lift(query.take(rows[0])),
+            self._lift(query.take(rows[1])),
+        ]
+        return self._merge(parts, rows, len(complete))
+
+    def _restricted(self, joint_sets: tuple[str, ...]) -> Lifter:
+        """This lifter (the same database and indices) scoring only `joint_sets`."""
+        view = copy.copy(self)
+        view.configure(dataclasses.replace(self.config, joint_sets=joint_sets))
+        return view
+
+    def _merge(self, parts: list[LiftResult], rows: list[torch.Tensor], b: int) -> LiftResult:
+        """Results of lifting disjoint rows of one batch, as one LiftResult in batch order; a
+        set a part did not score has energy inf."""
+        order = torch.cat(rows).argsort()
+        names = self.config.joint_sets
+        set_energies = []
+        for part in parts:
+            full = torch.full((len(part.energy), len(names)), torch.inf)
+            scored = [names.index(n) for n in part.set_names]
+            full[:, scored] = part.set_energies
+            set_energies.append(full)
+        timings: dict[str, float] = {}
+        for part in parts:
+            for stage, ms in part.timings_ms.items():
+                timings[stage] = timings.get(stage, 0.0) + ms
+        sets = [s for part in parts for s in part.joint_set]
+        return LiftResult(
+            joints_3d=torch.cat([p.joints_3d for p in parts])[order],
+            bone_lengths=torch.cat([p.bone_lengths for p in parts])[order],
+            joint_set=[sets[i] for i in order.tolist()],
+            energy=torch.cat([p.energy for p in parts])[order],
+            set_energies=torch.cat(set_energies)[order],
+            projection=torch.cat([p.projection for p in parts])[order],
+            timings_ms=timings,
+            set_names=names,
+        )
+
+    def _lift(self, query: Query) -> LiftResult:
+        """Every stage on every configured set."""
         timings: dict[str, float] = {}
         found = self.neighbours(query, timings=timings)
         with torch.no_grad(), stage_timer(timings, "selection", self.device):
@@ -161,6 +224,7 @@ class Lifter:
             set_energies=energies.cpu(),
             projection=projection.cpu(),
             timings_ms=timings,
+            set_names=self.config.joint_sets,
         )
 
     def query(self, joints_2d, visible=None, intrinsics=None) -> Query:
@@ -190,8 +254,9 @@ class Lifter:
     def retrieve(self, joints_2d: torch.Tensor) -> torch.Tensor:
         """K neighbours per configured set, camera-oriented. joints_2d: (B, 14, 2) px.
         Returns (B, S, K, 14, 3) mm."""
-        ids = self.retriever.search(joints_2d, self.config.neighbours, self.config.nprobe)
-        ids = ids[:, self.set_ids]
+        ids = self.retriever.search(
+            joints_2d, self.config.neighbours, self.config.nprobe, self.config.joint_sets
+        )
         return self.database.candidates(ids.to(self.device))
 
     def choose_set(self, kept, weights, kept_residuals, params, query: Query):

@@ -89,6 +89,11 @@ class CameraFrame:
         k = None if self.intrinsics is None else self.intrinsics.unsqueeze(dim)
         return CameraFrame(k, self.centre.unsqueeze(dim), self.spread.unsqueeze(dim))
 
+    def take(self, rows: torch.Tensor) -> CameraFrame:
+        """The problems `rows` (index into the leading dim)."""
+        k = None if self.intrinsics is None else self.intrinsics[rows]
+        return CameraFrame(k, self.centre[rows], self.spread[rows])
+
     def repeat(self, times: int) -> CameraFrame:
         """Each problem `times` times in a row: leading dim B -> B * times."""
         k = None if self.intrinsics is None else self.intrinsics.repeat_interleave(times, 0)

@@ -52,15 +52,14 @@ class Residuals:
         jac = self.jacobian
         if jac.shape[1] == 1:  # shared Jacobian: sum the weighted residuals first
             jac = jac[:, 0]  # (P, R, n)
-            total = irls.sum(-1)  # (P,)
-            hessian = total[:, None, None] * (jac.transpose(-1, -2) @ jac)
-            gradient = jac.transpose(-1, -2) @ (irls[..., None] * self.value).sum(1)[..., None]
-            return hessian, gradient[..., 0]
-        flat = jac.flatten(1, 2)  # (P, T*R, n)
-        weighted = flat * irls.repeat_interleave(jac.shape[2], 1)[..., None]
-        hessian = weighted.transpose(-1, -2) @ flat
-        gradient = (weighted * self.value.flatten(1, 2)[..., None]).sum(1)
-        return hessian, gradient
+            hessian = irls.sum(-1)[:, None, None] * (jac.transpose(-1, -2) @ jac)
+            weighted_value = (irls[..., None] * self.value).sum(1)  # (P, R)
+            return hessian, (jac.transpose(-1, -2) @ weighted_value[..., None])[..., 0]
+        root = irls.sqrt()[..., None]  # (P, T, 1)
+        flat = (jac * root[..., None]).flatten(1, 2)  # (P, T * R, n)
+        hessian = flat.transpose(-1, -2) @ flat
+        gradient = flat.transpose(-1, -2) @ (self.value * root).flatten(1, 2)[..., None]
+        return hessian, gradient[..., 0]
 
 
 Evaluate = Callable[[torch.Tensor, bool], list[Residuals]]

@@ -36,13 +36,6 @@ def joint_weights(mask: torch.Tensor) -> torch.Tensor:
     return mask * (NUM_JOINTS / mask.sum(-1, keepdim=True).clamp_min(1))
 
 
-def rotation_jacobian(rotated: torch.Tensor) -> torch.Tensor:
-    """d (exp(d) R X) / d d at d = 0: -[R X]_x. rotated: (..., 3) -> (..., 3, 3)."""
-    x, y, z = rotated.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([zero, z, -y, -z, zero, x, y, -x, zero], -1).unflatten(-1, (3, 3))
-
-
 def fit_projection(
     candidates: torch.Tensor,
     joints_2d: torch.Tensor,
@@ -80,7 +73,8 @@ def projection_problem(candidates, joints_2d, mask, frame: CameraFrame) -> gauss
         if not with_jacobian:
             return [Residuals(term_weight, value)]
         _, d_points, d_shift = out
-        d_rotation = d_points @ rotation_jacobian(rotated)  # (P, K, 14, 2, 3)
+        # d uv / d d = d_points @ -[R X]_x, row by row the cross product R X x d_points[row]
+        d_rotation = torch.linalg.cross(rotated[..., None, :], d_points)  # (P, K, 14, 2, 3)
         jacobian = torch.cat([d_rotation, d_shift], -1) * root_weight[..., None]
         return [Residuals(term_weight, value, jacobian.flatten(2, 3))]
 
@@ -101,9 +95,12 @@ def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
     w = weights / weights.sum(-1, keepdim=True).clamp_min(1e-12)
     mean = (w[..., None] * flat).sum(-2)
     centred = (flat - mean[..., None, :]) * w.sqrt()[..., None]
-    _, sigma, vh = torch.linalg.svd(centred, full_matrices=False)
-    c = min(components, vh.shape[-2])
-    return mean, vh[..., :c, :], sigma[..., :c]
+    # the eigenvectors of the (42, 42) scatter: the right singular vectors of `centred`, at
+    # less than half the cost of its SVD
+    variance, vectors = torch.linalg.eigh(centred.transpose(-1, -2) @ centred)
+    c = min(components, *centred.shape[-2:])
+    top = vectors.flip(-1)[..., :c].transpose(-1, -2)  # eigh sorts ascending
+    return mean, top, variance.flip(-1)[..., :c].clamp_min(0).sqrt()
 
 
 @dataclass(frozen=True)
@@ -116,7 +113,7 @@ class EnergyWeights:
     projection: float = 0.55
     retrieval: float = 0.35
     anthropometric: float = 0.065
-    proportions: float = 0.7
+    proportions: float = 0.4
 
 
 def _limb_matrix() -> torch.Tensor:
@@ -241,7 +238,8 @@ class PoseProblem:
             if g:
                 through_scaling = (scaling @ d_person.flatten(2)).view(b, NUM_JOINTS, 3, c)
                 d_person = torch.cat([through_scaling, scale_derivatives(pose, scales)], -1)
-            d_uv = (out[1][:, 0] @ rotation[:, None]) @ d_person  # (B, 14, 2, C + G)
+            d_uv = out[1][:, 0] @ rotation[:, None]  # (B, 14, 2, 3): d uv / d person
+            d_uv = (d_uv[..., None] * d_person[:, :, None]).sum(-2)  # (B, 14, 2, C + G)
             if self.shifts:
                 d_uv = torch.cat([d_uv, out[2][:, 0]], -1)
             groups[0].jacobian = (d_uv * root_weight).flatten(1, 2)[:, None]

@@ -35,7 +35,7 @@ class IndexConfig:
 
     kind: str = "ivf"
     nlist: int = 1024
-    storage: str = "f16"
+    storage: str = "f32"
 
     def factory_string(self) -> str:
         store = {"f32": "Flat", "f16": "SQfp16"}[self.storage]
@@ -77,8 +77,7 @@ def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int
 class PoseRetriever:
     """The five per-set indices of one database.
 
-    search(joints_2d (B, 14, 2), k, nprobe) -> ids (B, 5, k) int64 entry ids, sets in SET_NAMES
-    order.
+    search(joints_2d (B, 14, 2), k, nprobe, sets) -> ids (B, S, k) int64 entry ids.
     """
 
     def __init__(self, db: PoseDatabase, config: IndexConfig = IndexConfig(), cache: bool = True):
@@ -99,11 +98,15 @@ class PoseRetriever:
             partial.replace(path)  # atomic: concurrent replicas never read half a file
         return index
 
-    def search(self, joints_2d: torch.Tensor, k: int, nprobe: int = 8) -> torch.Tensor:
-        """joints_2d: (B, 14, 2) float, any unit; nprobe: inverted lists an IVF index visits.
-        Returns (B, 5, k) int64 entry ids (-1 where an approximate index found fewer than k)."""
+    def search(
+        self, joints_2d: torch.Tensor, k: int, nprobe: int = 8, sets: tuple[str, ...] = SET_NAMES
+    ) -> torch.Tensor:
+        """joints_2d: (B, 14, 2) float, any unit; nprobe: inverted lists an IVF index visits;
+        sets: the joint sets to search. Returns (B, len(sets), k) int64 entry ids (-1 where an
+        approximate index found fewer than k)."""
         ids = []
-        for name, index in zip(SET_NAMES, self.indices, strict=True):
+        for name in sets:
+            index = self.indices[SET_NAMES.index(name)]
             if hasattr(index, "nprobe"):
                 index.nprobe = nprobe
             query = normalize_2d(joints_2d[:, list(JOINT_SETS[name])].float().cpu())

@@ -48,4 +48,5 @@ def view_rotations(
 
 def rotate(poses: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
     """Apply rotations to poses. poses: (..., J, 3); rotations: (..., 3, 3) -> (..., J, 3)."""
-    return poses @ rotations.transpose(-1, -2)
+    # an elementwise product and sum: far faster than as many tiny (J, 3) @ (3, 3) products
+    return (poses[..., None, :] * rotations[..., None, :, :]).sum(-1)
