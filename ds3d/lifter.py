@@ -159,19 +159,15 @@ class Lifter:
         With config.partial_sets "hidden", a pose whose joints are all visible is lifted with
         the set `all` alone, the others with every configured set."""
         query = self.query(joints_2d, visible, intrinsics)
-        if self.config.partial_sets == "always" or "all" not in self.config.joint_sets:
-            return self._lift(query)
         complete = query.visible.all(-1)
-        if bool(complete.all()):
-            return self._restricted(("all",))._lift(query)
-        if not bool(complete.any()):
-            return self._lift(query)
-        rows = [complete.nonzero()[:, 0], (~complete).nonzero()[:, 0]]
-        parts = [
-            self._restricted(("all",))._lift(query.take(rows[0])),
-            self._lift(query.take(rows[1])),
-        ]
-        return self._merge(parts, rows, len(complete))
+        if self.config.partial_sets == "always" or "all" not in self.config.joint_sets:
+            complete = torch.zeros_like(complete)
+        parts, rows = [], []
+        for take, lifter in ((complete, self._restricted(("all",))), (~complete, self)):
+            if bool(take.any()):
+                rows.append(take.nonzero()[:, 0])
+                parts.append(lifter._lift(query.take(rows[-1])))
+        return self._merge(parts, rows)
 
     def _restricted(self, joint_sets: tuple[str, ...]) -> Lifter:
         """This lifter (the same database and indices) scoring only `joint_sets`."""
@@ -179,10 +175,10 @@ class Lifter:
         view.configure(dataclasses.replace(self.config, joint_sets=joint_sets))
         return view
 
-    def _merge(self, parts: list[LiftResult], rows: list[torch.Tensor], b: int) -> LiftResult:
-        """Results of lifting disjoint rows of one batch, as one LiftResult in batch order; a
-        set a part did not score has energy inf."""
-        order = torch.cat(rows).argsort()
+    def _merge(self, parts: list[LiftResult], rows: list[torch.Tensor]) -> LiftResult:
+        """Results of lifting the disjoint rows of one batch, as one LiftResult in batch order,
+        energies of every configured set (inf for a set a part did not score)."""
+        order = torch.cat(rows).argsort().cpu()
         names = self.config.joint_sets
         set_energies = []
         for part in parts:
