@@ -44,9 +44,11 @@ class LiftResult:
     """3D poses of B 2D poses, in the order sent."""
 
     joints_3d: np.ndarray  # (B, 14, 3) float32, millimetres
+    bone_lengths: np.ndarray  # (B, 14) float32, millimetres, in bone_names order
     joint_set: list[str]  # (B,) the joint set each pose was fitted with
     energy: np.ndarray  # (B,) float32, final fit energy
     joint_names: list[str]
+    bone_names: list[str]
     model: str
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -179,9 +181,11 @@ class _Protocol:
         items = body["items"]
         return LiftResult(
             joints_3d=np.asarray([it["joints_3d"] for it in items], dtype=np.float32),
+            bone_lengths=np.asarray([it["bone_lengths"] for it in items], dtype=np.float32),
             joint_set=[it["joint_set"] for it in items],
             energy=np.asarray([it["energy"] for it in items], dtype=np.float32),
             joint_names=list(body["joint_names"]),
+            bone_names=list(body["bone_names"]),
             model=body["model"],
             timings_ms=dict(body.get("timings_ms", {})),
         )

@@ -48,6 +48,7 @@ class BatchInfo:
 @dataclass(frozen=True)
 class LiftOutput:
     joints_3d: np.ndarray  # (14, 3) float32, mm
+    bone_lengths: np.ndarray  # (14,) float32, mm, ds3d.skeleton.BONE_NAMES order
     joint_set: str
     energy: float
     batch: BatchInfo
@@ -136,9 +137,11 @@ class Engine:
             intrinsics = np.stack([items[i].intrinsics for i in idx]) if has_k else None
             res = self.lifter.lift(joints, visible=visible, intrinsics=intrinsics)
             info = self._batch_info(len(idx), res.timings_ms)
-            joints_3d, energy = _numpy(res.joints_3d), _numpy(res.energy)
+            joints_3d, bones = _numpy(res.joints_3d), _numpy(res.bone_lengths)
+            energy = _numpy(res.energy)
             for j, i in enumerate(idx):
-                out[i] = LiftOutput(joints_3d[j], res.joint_set[j], float(energy[j]), info)
+                set_name = res.joint_set[j]
+                out[i] = LiftOutput(joints_3d[j], bones[j], set_name, float(energy[j]), info)
         return out  # type: ignore[return-value]
 
     def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:

@@ -40,6 +40,10 @@ class LiftRequest(_Strict):
 
 class LiftResult(BaseModel):
     joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
+    bone_lengths: list[float] = Field(
+        description="the person's 14 bone lengths, millimetres, in bone_names order: estimated"
+        " from the 2D pose, held near the pose database's proportions"
+    )
     joint_set: str = Field(description="the joint set the 3D pose was fitted with")
     energy: float = Field(description="the fit's final energy (lower fits better)")
 
@@ -47,6 +51,7 @@ class LiftResult(BaseModel):
 class LiftResponse(BaseModel):
     items: list[LiftResult]
     joint_names: list[str]
+    bone_names: list[str] = Field(description="bone_lengths' order: child joint's side and bone")
     model: str = Field(description="id of the model that answered")
     timings_ms: dict[str, float] = Field(
         description="queue wait, per-stage model time (of the batches the items ran in), total"

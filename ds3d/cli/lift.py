@@ -16,6 +16,7 @@ from ds3d.cli.parser import (
     set_threads,
     write_report,
 )
+from ds3d.skeleton import BONE_NAMES
 
 LIFTER_OVERRIDE = "override a LifterConfig field (ds3d.lifter), e.g. proportions=false or "
 LIFTER_OVERRIDE += "omega.proportions=20; repeatable"
@@ -74,6 +75,8 @@ def lift(args) -> int:
             "model": lifter.model_id,
             # rounded in float64: a rounded float32 prints as -135.7100067138672
             "joints_3d": result.joints_3d.double().numpy().round(2).tolist(),
+            "bone_names": list(BONE_NAMES),
+            "bone_lengths": result.bone_lengths.double().numpy().round(1).tolist(),
             "joint_set": result.joint_set,
             "energy": result.energy.tolist(),
             "timings_ms": result.timings_ms,

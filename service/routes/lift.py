@@ -7,7 +7,7 @@ import time
 import numpy as np
 from fastapi import APIRouter, Depends, Request
 
-from ds3d.skeleton import JOINT_NAMES, NUM_JOINTS
+from ds3d.skeleton import BONE_NAMES, JOINT_NAMES, NUM_JOINTS
 from service.deps import RuntimeHandleDep, SettingsDep
 from service.engine import LiftInput, request_timings_ms
 from service.errors import ApiError
@@ -60,10 +60,16 @@ async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleD
     outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s)
     return LiftResponse(
         items=[
-            LiftResult(joints_3d=o.joints_3d.tolist(), joint_set=o.joint_set, energy=o.energy)
+            LiftResult(
+                joints_3d=o.joints_3d.tolist(),
+                bone_lengths=o.bone_lengths.tolist(),
+                joint_set=o.joint_set,
+                energy=o.energy,
+            )
             for o in outputs
         ],
         joint_names=list(JOINT_NAMES),
+        bone_names=list(BONE_NAMES),
         model=rt.engine.model_id,
         timings_ms=request_timings_ms(outputs, time.perf_counter() - t0),
     )

@@ -25,7 +25,7 @@ from ds3d.data.lsp import load_lsp
 from ds3d.errors import DataFormatError
 from ds3d.image_io import read_image
 from ds3d.paths import MODELS_DIR
-from ds3d.skeleton import JOINT_NAMES
+from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
 from service.app import create_app
 from service.client import AsyncPoseClient, PoseClient, ServiceError
 from service.engine import Engine
@@ -120,7 +120,8 @@ def test_lift_matches_the_library(url, engine, poses):
     # One request's items are queued at once, so they form exactly this batch of 4.
     ref = engine.lifter.lift(x, visible=vis)
     np.testing.assert_allclose(res.joints_3d, ref.joints_3d.numpy(), atol=1e-3)
-    assert res.joint_set == ref.joint_set
+    np.testing.assert_allclose(res.bone_lengths, ref.bone_lengths.numpy(), atol=1e-3)
+    assert res.joint_set == ref.joint_set and res.bone_names == list(BONE_NAMES)
     assert res.model == engine.model_id and res.joint_names == list(JOINT_NAMES)
     assert {"retrieval", "total"} <= set(res.timings_ms)
 

@@ -22,13 +22,16 @@ from service.client import AsyncPoseClient, PoseClient, ServiceError, encode_png
 def lift_answer(request: httpx.Request) -> httpx.Response:
     items = json.loads(request.content)["items"]
     out = [
-        {"joints_3d": [[i, 0.0, 1.0]] * 14, "joint_set": "all", "energy": 0.5}
+        {
+            "joints_3d": [[i, 0.0, 1.0]] * 14,
+            "bone_lengths": [100.0 + i] * 14,
+            "joint_set": "all",
+            "energy": 0.5,
+        }
         for i in range(len(items))
     ]
-    return httpx.Response(
-        200,
-        json={"items": out, "joint_names": ["j"] * 14, "model": "m", "timings_ms": {"total": 1.0}},
-    )
+    body = {"items": out, "joint_names": ["j"] * 14, "bone_names": ["b"] * 14, "model": "m"}
+    return httpx.Response(200, json=body | {"timings_ms": {"total": 1.0}})
 
 
 class Flaky:
@@ -69,6 +72,7 @@ def test_lift_encodes_a_batch_and_decodes_typed_arrays():
     assert body[1]["intrinsics"] == k.tolist() and body[0]["visible"] == [True] * 14
     assert res.joints_3d.shape == (3, 14, 3) and res.joints_3d.dtype == np.float32
     assert res.joints_3d[2, 0, 0] == 2 and res.joint_set == ["all"] * 3 and res.model == "m"
+    assert res.bone_lengths.shape == (3, 14) and res.bone_lengths[2, 0] == 102
     # one pose (14, 2) is a batch of one
     assert client.lift(x[0]).joints_3d.shape == (1, 14, 3)
     with pytest.raises(ValueError):
