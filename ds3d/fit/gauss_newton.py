@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -35,31 +36,29 @@ class Residuals:
     jacobian: torch.Tensor | None = None
     robust: bool = True
 
+    @cached_property
+    def squared(self) -> torch.Tensor:
+        """(P, T) |r_t|^2."""
+        return (self.value * self.value).sum(-1)
+
     def energy(self) -> torch.Tensor:
         """(P,) the group's energy."""
-        squared = (self.value * self.value).sum(-1)
-        cost = (squared + EPS).pow(0.25) if self.robust else squared
+        cost = (self.squared + EPS).pow(0.25) if self.robust else self.squared
         return (self.weight * cost).sum(-1)
 
-    def normal_equations(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The reweighted least-squares system at the current point: J^T W J (P, n, n) and
-        J^T W r (P, n)."""
+    def whitened(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The reweighted least-squares system at the current point as A (P, R', n) and b
+        (P, R'), with J^T W J = A^T A and J^T W r = A^T b."""
         if self.robust:  # rho'(e) = e^(-3/4) / 4: the majoriser's weight
-            squared = (self.value * self.value).sum(-1)
-            irls = self.weight * 0.25 * (squared + EPS).pow(-0.75)
+            irls = self.weight * 0.25 * (self.squared + EPS).pow(-0.75)
         else:
             irls = self.weight
-        jac = self.jacobian
-        if jac.shape[1] == 1:  # shared Jacobian: sum the weighted residuals first
-            jac = jac[:, 0]  # (P, R, n)
-            hessian = irls.sum(-1)[:, None, None] * (jac.transpose(-1, -2) @ jac)
-            weighted_value = (irls[..., None] * self.value).sum(1)  # (P, R)
-            return hessian, (jac.transpose(-1, -2) @ weighted_value[..., None])[..., 0]
+        if self.jacobian.shape[1] == 1:  # shared: the weighted residuals sum first
+            root = irls.sum(-1).clamp_min(1e-30).sqrt()[:, None]  # (P, 1)
+            combined = (irls[..., None] * self.value).sum(1) / root  # (P, R)
+            return self.jacobian[:, 0] * root[..., None], combined
         root = irls.sqrt()[..., None]  # (P, T, 1)
-        flat = (jac * root[..., None]).flatten(1, 2)  # (P, T * R, n)
-        hessian = flat.transpose(-1, -2) @ flat
-        gradient = flat.transpose(-1, -2) @ (self.value * root).flatten(1, 2)[..., None]
-        return hessian, gradient[..., 0]
+        return (self.jacobian * root[..., None]).flatten(1, 2), (self.value * root).flatten(1)
 
 
 Evaluate = Callable[[torch.Tensor, bool], list[Residuals]]
@@ -108,9 +107,12 @@ def minimize(
 
 
 def _system(groups: list[Residuals]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The energy (P,) and the summed normal equations (P, n, n), (P, n) of all groups."""
-    systems = [group.normal_equations() for group in groups]
-    return total_energy(groups), sum(h for h, _ in systems), sum(g for _, g in systems)
+    """The energy (P,) and the normal equations of all groups, J^T W J (P, n, n) and
+    J^T W r (P, n), from one product of their stacked whitened systems."""
+    systems = [group.whitened() for group in groups]
+    a = torch.cat([a for a, _ in systems], 1).transpose(1, 2)  # (P, n, R')
+    b = torch.cat([b for _, b in systems], 1)[..., None]  # (P, R', 1)
+    return total_energy(groups), a @ a.transpose(1, 2), (a @ b)[..., 0]
 
 
 def _where(take: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
