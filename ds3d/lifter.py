@@ -52,7 +52,7 @@ class LifterConfig:
     # seen from nearly the same view pin down as well as all K
     projection_neighbours: int = 32
     projection_iterations: int = 2  # Gauss-Newton steps of eq:projerr1
-    pose_iterations: int = 4  # Gauss-Newton steps of eq:energyMin2
+    pose_iterations: int = 5  # Gauss-Newton steps of eq:energyMin2
     proportions: bool = True  # estimate the person's bone-group scales (False: the database's)
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
     # own joints, as written, which lets small sets win by fitting fewer joints.

@@ -15,6 +15,11 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--source", choices=("h36m", "cmu"), default="h36m")
     p.add_argument("--subjects", default="S1,S5,S6,S7,S8,S9", help="Human3.6M subjects")
     p.add_argument("--bvh", type=Path, nargs="*", help="BVH files or folders (cmu source)")
+    p.add_argument(
+        "--native-proportions",
+        action="store_true",
+        help="cmu source: keep the BVH skeletons' own bone lengths (default: Human3.6M's medians)",
+    )
     p.add_argument("--dedupe-mm", type=float, default=DEDUPE_MM)
     p.add_argument("--out", type=Path, default=MODELS_DIR / "posedb")
     p.set_defaults(func=build_db)
@@ -33,12 +38,10 @@ def build_db(args) -> int:
     else:
         from ds3d.data.cmu import load_cmu_poses
 
-        poses = load_cmu_poses(args.bvh or None)
-        manifest = {
-            "source": "cmu",
-            "files": [str(p) for p in args.bvh or ["cmu_bvh/*"]],
-            "retargeted_to": "h36m median bone lengths",
-        }
+        poses = load_cmu_poses(args.bvh or None, retarget=not args.native_proportions)
+        manifest = {"source": "cmu", "files": [str(p) for p in args.bvh or ["cmu_bvh/*"]]}
+        if not args.native_proportions:
+            manifest["retargeted_to"] = "h36m median bone lengths"
     db = PoseDatabase.from_world_poses(poses, args.dedupe_mm, manifest)
     db.save(args.out)
     print(
