@@ -52,7 +52,7 @@ class LifterConfig:
     # seen from nearly the same view pin down as well as all K
     projection_neighbours: int = 32
     projection_iterations: int = 2  # Gauss-Newton steps of eq:projerr1
-    pose_iterations: int = 5  # Gauss-Newton steps of eq:energyMin2
+    pose_iterations: int = 4  # Gauss-Newton steps of eq:energyMin2
     proportions: bool = True  # estimate the person's bone-group scales (False: the database's)
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
     # own joints, as written, which lets small sets win by fitting fewer joints.
@@ -136,6 +136,7 @@ class Lifter:
         if config.index != self.retriever.config:
             raise ValueError("the index settings are fixed when a Lifter is built")
         self.config = config
+        self._views: dict[tuple[str, ...], Lifter] = {}  # _restricted's, for this config
         self.set_ids = [SET_NAMES.index(name) for name in config.joint_sets]
         masks = torch.from_numpy(joint_set_mask())  # (5, 14), SET_NAMES order
         self.set_masks = masks[self.set_ids].to(self.device)  # (S, 14)
@@ -171,9 +172,11 @@ class Lifter:
 
     def _restricted(self, joint_sets: tuple[str, ...]) -> Lifter:
         """This lifter (the same database and indices) scoring only `joint_sets`."""
-        view = copy.copy(self)
-        view.configure(dataclasses.replace(self.config, joint_sets=joint_sets))
-        return view
+        if joint_sets not in self._views:
+            view = copy.copy(self)
+            view.configure(dataclasses.replace(self.config, joint_sets=joint_sets))
+            self._views[joint_sets] = view
+        return self._views[joint_sets]
 
     def _merge(self, parts: list[LiftResult], rows: list[torch.Tensor]) -> LiftResult:
         """Results of lifting the disjoint rows of one batch, as one LiftResult in batch order,

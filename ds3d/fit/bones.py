@@ -37,6 +37,7 @@ def _matrices() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 
 ROOT_MIX, BONE_MATRIX, PATH, GROUP = (torch.from_numpy(m) for m in _matrices())
+PATH_GROUP = PATH[..., None] * GROUP  # (14, B, G): 1 where a bone of group g leads to joint j
 
 # How much each bone group varies between people: the standard deviation over the Human3.6M
 # training subjects (S1, S5-S9) of the log of each subject's median group length, BONE_GROUPS
@@ -71,5 +72,6 @@ def scale_derivatives(poses: torch.Tensor, group_scales: torch.Tensor) -> torch.
     """d (scaled pose) / d (log group scale): poses (..., 14, 3) unscaled, group_scales (..., G).
     Returns (..., 14, 3, G)."""
     scaled_bones = bone_scales(group_scales)[..., None] * bone_vectors(poses)  # (..., B, 3)
-    per_group = PATH.to(poses)[..., None] * GROUP.to(poses)  # (14, B, G)
-    return torch.einsum("jbg,...bd->...jdg", per_group, scaled_bones)
+    # (14 * G, B) @ (..., B, 3) -> (..., 14, G, 3)
+    per_group = PATH_GROUP.to(poses).transpose(1, 2).flatten(0, 1) @ scaled_bones
+    return per_group.unflatten(-2, (PATH_GROUP.shape[0], PATH_GROUP.shape[2])).transpose(-1, -2)

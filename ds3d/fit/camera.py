@@ -22,18 +22,14 @@ DEPTH_UNIT = 1000.0  # mm
 
 
 def rotation_matrix(rotvec: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula. rotvec: (..., 3) radians -> (..., 3, 3); smooth at zero."""
-    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
-    theta = theta2.clamp_min(1e-12).sqrt()
-    small = theta2 < 1e-8
-    # sin(t)/t and (1-cos t)/t^2 with their Taylor series near zero
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-12))
+    """Rodrigues' formula. rotvec: (..., 3) radians -> (..., 3, 3); smooth at zero.
+    sin(t) / t = sinc(t / pi) and (1 - cos t) / t^2 = sinc(t / 2 pi)^2 / 2 hold at t = 0 too."""
+    turns = rotvec.norm(dim=-1)[..., None, None] / torch.pi
     x, y, z = rotvec.unbind(-1)
     zero = torch.zeros_like(x)
-    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape, 3)
+    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).unflatten(-1, (3, 3))
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
-    return eye + a * skew + b * (skew @ skew)
+    return eye + torch.sinc(turns) * skew + 0.5 * torch.sinc(turns / 2) ** 2 * (skew @ skew)
 
 
 def rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
@@ -124,51 +120,36 @@ def project_rotated(
     (..., N, J, 2, 3).
     """
     a, b, w = shift[..., 0:1], shift[..., 1:2], shift[..., 2:3]
-    spread = frame.spread[..., None, None, None]
+    spread = frame.spread[..., None, None, None]  # (..., 1, 1, 1)
     if frame.intrinsics is None:
-        size = torch.exp(w)[..., None, None] / DEPTH_UNIT
-        xy = size * rotated[..., :2] + torch.cat([a, b], -1)[..., None, None, :]
-        uv = frame.centre[..., None, None, :] + spread * xy
+        scale = spread * torch.exp(w)[..., None, None] / DEPTH_UNIT  # px per mm
+        image = scale * rotated[..., :2]  # (..., N, J, 2) px from the frame's origin
+        uv = image + (frame.centre + frame.spread[..., None] * shift[..., :2])[..., None, None, :]
         if not jacobian:
             return uv
-        zero = torch.zeros_like(rotated[..., 0])
-        one = torch.ones_like(zero)
-        d_points = (spread * size)[..., None] * torch.eye(2, 3, dtype=uv.dtype, device=uv.device)
-        d_shift = spread[..., None] * torch.stack(
-            [one, zero, size[..., 0] * rotated[..., 0], zero, one, size[..., 0] * rotated[..., 1]],
-            -1,
-        ).unflatten(-1, (2, 3))
-        return uv, d_points.expand(*uv.shape, 3), d_shift
+        eye = torch.eye(2, 3, dtype=uv.dtype, device=uv.device)
+        d_points = (scale[..., None] * eye).expand(*uv.shape, 3)
+        d_ab = (spread[..., None] * eye[:, :2]).expand(*uv.shape, 2)
+        return uv, d_points, torch.cat([d_ab, image[..., None]], -1)  # d uv / d w = image
     focal, principal = _focal_principal(frame.intrinsics)
     offset = torch.cat([a, b], -1) * frame.spread[..., None] / focal
     depth = torch.exp(w) * DEPTH_UNIT
     move = depth * torch.cat([offset, torch.ones_like(a)], -1)  # (..., 3) mm
     cam = rotated + move[..., None, None, :]
-    z = cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
+    inverse_z = 1 / cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
     f = focal[..., None, None, :]
-    uv = f * cam[..., :2] / z + principal[..., None, None, :]
+    image = f * cam[..., :2] * inverse_z  # (..., N, J, 2) px from the principal point
+    uv = image + principal[..., None, None, :]
     if not jacobian:
         return uv
-    zero = torch.zeros_like(z[..., 0])
-    fz = f / z  # (..., N, J, 2)
-    d_points = torch.stack(
-        [
-            fz[..., 0],
-            zero,
-            -(uv[..., 0] - principal[..., None, None, 0]) / z[..., 0],
-            zero,
-            fz[..., 1],
-            -(uv[..., 1] - principal[..., None, None, 1]) / z[..., 0],
-        ],
-        -1,
-    ).unflatten(-1, (2, 3))
-    scale = depth * frame.spread[..., None] / focal  # (..., 2): d move_xy / d (a, b)
-    no = torch.zeros_like(depth[..., 0])
-    d_move = torch.stack(
-        [scale[..., 0], no, move[..., 0], no, scale[..., 1], move[..., 1], no, no, move[..., 2]],
-        -1,
-    ).unflatten(-1, (3, 3))  # (..., 3, 3): d move / d (a, b, w)
-    return uv, d_points, d_points @ d_move[..., None, None, :, :]
+    # d uv / d cam = [f / z, 0, -image_x / z; 0, f / z, -image_y / z]
+    d_points = torch.cat([torch.diag_embed(f * inverse_z), (-image * inverse_z)[..., None]], -1)
+    # move = depth (a spread / f_x, b spread / f_y, 1): d uv / d a and d b are depth spread / z
+    # on their own axis; d move / d w = move
+    ab = (depth * frame.spread[..., None])[..., None, None, :] * inverse_z  # (..., N, J, 1)
+    d_w = (f * move[..., None, None, :2] - image * move[..., None, None, 2:]) * inverse_z
+    d_shift = torch.cat([torch.diag_embed(ab.expand_as(image)), d_w[..., None]], -1)
+    return uv, d_points, d_shift
 
 
 def _focal_principal(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

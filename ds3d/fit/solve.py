@@ -150,7 +150,8 @@ def fit_pose(
     prefers the database's proportions, settles it).
     """
     problem = PoseProblem(neighbours, weights, components, proportions)
-    evaluate = problem.residuals(params, joints_2d, mask, frame, omega)
+    strength = params.new_ones(len(params))  # the prior's, per problem
+    evaluate = problem.residuals(params, joints_2d, mask, frame, omega, strength)
     if not proportions:
         z, _ = gauss_newton.minimize(evaluate, problem.start(), iterations)
         return problem.person(z), problem.projection(z, params)
@@ -161,8 +162,7 @@ def fit_pose(
     z, _ = gauss_newton.minimize(evaluate, problem.start(), first)
     (projection_term, *_) = evaluate(z, False)
     misfit = (projection_term.squared[:, 0] / NUM_JOINTS).sqrt() / frame.spread
-    strength = (misfit / NOISE_REFERENCE).clamp_min(1) ** 4
-    evaluate = problem.residuals(params, joints_2d, mask, frame, omega, strength)
+    strength.copy_((misfit / NOISE_REFERENCE).clamp_min(1) ** 4)  # evaluate reads it
     z, _ = gauss_newton.minimize(evaluate, z, iterations - first)
     return problem.person(z), problem.projection(z, params)
 
@@ -197,7 +197,8 @@ class PoseProblem:
 
     def pose(self, z: torch.Tensor) -> torch.Tensor:
         """(B, 14, 3) mm: the pose in the database's proportions."""
-        return self.mean + torch.einsum("bc,bcjd->bjd", z[:, : self.components], self.basis)
+        offset = z[:, None, : self.components] @ self.basis.flatten(2)  # (B, 1, 42)
+        return self.mean + offset.view_as(self.mean)
 
     def person(self, z: torch.Tensor) -> torch.Tensor:
         """(B, 14, 3) mm: the pose with the person's bone-group scales."""
@@ -217,11 +218,11 @@ class PoseProblem:
         mask,
         frame: CameraFrame,
         omega: EnergyWeights,
-        prior_strength: torch.Tensor | None = None,
+        prior_strength: torch.Tensor,
     ):
         """The energy's residuals as ds3d.fit.gauss_newton takes them: E_p of the person under
         the projection params (B, 6), E_r and E_a of the pose, the prior on the scales
-        (omega.proportions, times prior_strength (B,) where given)."""
+        (omega.proportions times prior_strength (B,), read at each evaluation)."""
         b, c, g = len(self.mean), self.components, self.groups
         n = c + g + self.shifts
         rotation = rotation_matrix(params[:, :3])
@@ -229,10 +230,8 @@ class PoseProblem:
         neighbour_vectors = self.neighbours.flatten(-2)
         neighbour_limbs = limb_lengths(self.neighbours)
         limb_matrix = LIMB_MATRIX.to(self.mean)
+        limb_basis = limb_matrix @ self.basis  # (B, C, 13, 3): the limbs' change per coefficient
         ones = self.mean.new_ones(b, 1)
-        prior_weight = omega.proportions * (
-            ones if prior_strength is None else prior_strength[:, None]
-        )
         # Jacobians of the terms that only the pose moves: zero beyond its coefficients
         d_pose = F.pad(self.basis.flatten(2).transpose(1, 2), (0, n - c))[:, None]  # (B,1,42,n)
         # the scales' prior in units of each group's spread, normalised to an RMS of one
@@ -261,6 +260,7 @@ class PoseProblem:
             ]
             if g:
                 scale_prior = (z[:, self.scale_columns] / prior_sd)[:, None]
+                prior_weight = omega.proportions * prior_strength[:, None]
                 groups.append(Residuals(prior_weight, scale_prior, robust=False))
             if not with_jacobian:
                 return groups
@@ -275,7 +275,7 @@ class PoseProblem:
             groups[0].jacobian = (d_uv * root_weight).flatten(1, 2)[:, None]
             groups[1].jacobian = d_pose
             unit = limb_vectors / limbs.clamp_min(1e-6)[..., None]  # (B, 13, 3)
-            d_limbs = torch.einsum("bld,lj,bcjd->blc", unit, limb_matrix, self.basis)
+            d_limbs = (unit[:, None] * limb_basis).sum(-1).transpose(1, 2)  # (B, 13, C)
             groups[2].jacobian = F.pad(d_limbs, (0, n - c))[:, None]
             if g:
                 groups[3].jacobian = prior_jacobian

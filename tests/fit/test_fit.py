@@ -77,7 +77,9 @@ def test_analytic_jacobians_equal_autograd(perspective, proportions):
     problem = PoseProblem(candidates, torch.rand(3, 5, generator=g, dtype=d), 4, proportions)
     z = torch.randn(3, problem.start().shape[1], generator=g, dtype=d) * 0.3
     compare(
-        problem.residuals(params, joints_2d, mask, frame, EnergyWeights()), z, lambda step: z + step
+        problem.residuals(params, joints_2d, mask, frame, EnergyWeights(), torch.ones(3, dtype=d)),
+        z,
+        lambda step: z + step,
     )
 
 
