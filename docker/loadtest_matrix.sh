@@ -20,7 +20,7 @@ else  # LSP's 2000 annotated poses, or POSES=FILE in `ds3d lift`'s input format
     POSES=${POSES:-$OUT/lsp_poses.json}
     [ -f "$POSES" ] || $PY -c 'import json, sys; from ds3d.data.lsp import load_lsp; a = load_lsp()
 json.dump({"joints_2d": a.joints.tolist(), "visible": a.visible.tolist()}, open(sys.argv[1], "w"))' "$POSES"
-    INPUT_ARGS=(--poses "$POSES")
+    INPUT_ARGS=(--poses "$POSES" --items "${ITEMS:-1}")  # ITEMS: poses per /v1/lift request
 fi
 export OMP_NUM_THREADS=1
 

@@ -17,8 +17,6 @@ camera frame), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours
 
 from __future__ import annotations
 
-import copy
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -57,10 +55,10 @@ class LifterConfig:
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
     # own joints, as written, which lets small sets win by fitting fewer joints.
     select_on_all_joints: bool = True
-    # "hidden": the sets other than `all` are scored only for poses with a hidden joint (with
-    # every joint visible `all` is as good: docs/RESULTS.md, the joint-set ablation); "always":
-    # every set for every pose, as the paper.
-    partial_sets: str = "hidden"
+    # "needed": each pose scores only the sets it could choose: `all` when every joint is
+    # visible (the others are no better then: docs/RESULTS.md, the joint-set ablation), else the
+    # sets without a hidden joint; "always": every set for every pose, as the paper.
+    partial_sets: str = "needed"
     index: IndexConfig = field(default_factory=IndexConfig)
 
 
@@ -99,8 +97,8 @@ class LiftResult:
     """joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the
     camera), root at the hip midpoint. bone_lengths: (B, 14) mm, ds3d.skeleton.BONE_NAMES order,
     the person's (LifterConfig.proportions) or the database's. joint_set: the chosen set per
-    pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S), sets in
-    `set_names` order, inf for a set not scored (LifterConfig.partial_sets). projection:
+    pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S), inf for a set
+    not scored (LifterConfig.partial_sets). projection:
     (B, 6) M^ (ds3d.fit.camera). timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
@@ -110,7 +108,6 @@ class LiftResult:
     set_energies: torch.Tensor
     projection: torch.Tensor
     timings_ms: dict[str, float]
-    set_names: tuple[str, ...] = SET_NAMES
 
 
 class Lifter:
@@ -136,7 +133,6 @@ class Lifter:
         if config.index != self.retriever.config:
             raise ValueError("the index settings are fixed when a Lifter is built")
         self.config = config
-        self._views: dict[tuple[str, ...], Lifter] = {}  # _restricted's, for this config
         self.set_ids = [SET_NAMES.index(name) for name in config.joint_sets]
         masks = torch.from_numpy(joint_set_mask())  # (5, 14), SET_NAMES order
         self.set_masks = masks[self.set_ids].to(self.device)  # (S, 14)
@@ -157,74 +153,51 @@ class Lifter:
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
         optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose.
-        With config.partial_sets "hidden", a pose whose joints are all visible is lifted with
-        the set `all` alone, the others with every configured set."""
+        Every stage runs on the (pose, set) problems that config.partial_sets scores, each
+        stage once for all of them."""
         query = self.query(joints_2d, visible, intrinsics)
-        complete = query.visible.all(-1)
-        if self.config.partial_sets == "always" or "all" not in self.config.joint_sets:
-            complete = torch.zeros_like(complete)
-        parts, rows = [], []
-        for take, lifter in ((complete, self._restricted(("all",))), (~complete, self)):
-            if bool(take.any()):
-                rows.append(take.nonzero()[:, 0])
-                parts.append(lifter._lift(query.take(rows[-1])))
-        return self._merge(parts, rows)
-
-    def _restricted(self, joint_sets: tuple[str, ...]) -> Lifter:
-        """This lifter (the same database and indices) scoring only `joint_sets`."""
-        if joint_sets not in self._views:
-            view = copy.copy(self)
-            view.configure(dataclasses.replace(self.config, joint_sets=joint_sets))
-            self._views[joint_sets] = view
-        return self._views[joint_sets]
-
-    def _merge(self, parts: list[LiftResult], rows: list[torch.Tensor]) -> LiftResult:
-        """Results of lifting the disjoint rows of one batch, as one LiftResult in batch order,
-        energies of every configured set (inf for a set a part did not score)."""
-        order = torch.cat(rows).argsort().cpu()
-        names = self.config.joint_sets
-        set_energies = []
-        for part in parts:
-            full = torch.full((len(part.energy), len(names)), torch.inf)
-            scored = [names.index(n) for n in part.set_names]
-            full[:, scored] = part.set_energies
-            set_energies.append(full)
-        timings: dict[str, float] = {}
-        for part in parts:
-            for stage, ms in part.timings_ms.items():
-                timings[stage] = timings.get(stage, 0.0) + ms
-        sets = [s for part in parts for s in part.joint_set]
-        return LiftResult(
-            joints_3d=torch.cat([p.joints_3d for p in parts])[order],
-            bone_lengths=torch.cat([p.bone_lengths for p in parts])[order],
-            joint_set=[sets[i] for i in order.tolist()],
-            energy=torch.cat([p.energy for p in parts])[order],
-            set_energies=torch.cat(set_energies)[order],
-            projection=torch.cat([p.projection for p in parts])[order],
-            timings_ms=timings,
-            set_names=names,
-        )
-
-    def _lift(self, query: Query) -> LiftResult:
-        """Every stage on every configured set."""
-        timings: dict[str, float] = {}
-        found = self.neighbours(query, timings=timings)
-        with torch.no_grad(), stage_timer(timings, "selection", self.device):
-            kept, weights, kept_residuals = self.weight_neighbours(found.poses, -found.residuals)
-            energies, best = self.choose_set(kept, weights, kept_residuals, found.params, query)
-        with torch.no_grad(), stage_timer(timings, "pose_fit", self.device):
-            pose, projection = self.fit_pose(kept, weights, found.params, query, best)
-        rows = torch.arange(len(best), device=self.device)
+        dev, b, timings = self.device, len(query.joints_2d), {}
+        row, set_index = self.scored_sets(query.visible).nonzero().unbind(1)  # P problems
+        on_device = row.to(dev), set_index.to(dev)
+        problems = query.take(on_device[0])
+        masks = self.set_masks[on_device[1]] * problems.visible.float()  # (P, 14)
+        with torch.no_grad(), stage_timer(timings, "retrieval", dev):
+            poses = self._retrieve_problems(query.joints_2d, row, set_index)
+        with stage_timer(timings, "projection_fit", dev):
+            params, residuals = self._fit_projections(poses, problems, masks)
+        with torch.no_grad(), stage_timer(timings, "selection", dev):
+            kept, weights, kept_residuals = self.weight_neighbours(poses, -residuals)
+            energy = self._set_energies(kept, weights, kept_residuals, params, problems)
+            energies = torch.full((b, len(self.set_ids)), torch.inf, device=dev)
+            energies[on_device] = energy
+            usable = self.usable_sets(query.visible)
+            best = torch.where(usable, energies, torch.inf).argmin(-1)
+            problem_of = torch.zeros(b, len(self.set_ids), dtype=torch.long, device=dev)
+            problem_of[on_device] = torch.arange(len(row), device=dev)
+            chosen = problem_of[torch.arange(b, device=dev), best]
+        with torch.no_grad(), stage_timer(timings, "pose_fit", dev):
+            pose, projection = self._fit_pose(
+                kept[chosen], weights[chosen], params[chosen], query, masks[chosen]
+            )
         return LiftResult(
             joints_3d=pose.cpu(),
             bone_lengths=bone_lengths(pose).cpu(),
             joint_set=[self.config.joint_sets[i] for i in best.tolist()],
-            energy=energies[rows, best].cpu(),
+            energy=energy[chosen].cpu(),
             set_energies=energies.cpu(),
             projection=projection.cpu(),
             timings_ms=timings,
-            set_names=self.config.joint_sets,
         )
+
+    def scored_sets(self, visible: torch.Tensor) -> torch.Tensor:
+        """(B, S) bool on the CPU: the sets `lift` scores for each pose (config.partial_sets)."""
+        usable = self.usable_sets(visible).cpu()
+        if self.config.partial_sets == "always":
+            return torch.ones_like(usable)
+        if "all" in self.config.joint_sets:  # every joint visible: `all` alone
+            only_all = torch.tensor([name == "all" for name in self.config.joint_sets])
+            usable[visible.all(-1).cpu()] = only_all
+        return usable
 
     def query(self, joints_2d, visible=None, intrinsics=None) -> Query:
         """Checked 2D input on the lifter's device, with its camera frame. Arguments as lift;
@@ -262,15 +235,27 @@ class Lifter:
         """s^ by eq:energyS. kept: (B, S, K_w, 14, 3); weights, kept_residuals: (B, S, K_w);
         params: (B, S, 6). Returns the energies (B, S) and the chosen set (B,) among the usable
         ones."""
-        if self.config.select_on_all_joints:
-            kept_residuals = projection_energy(
-                project(kept, params, query.frame.unsqueeze(1)),
-                query.joints_2d[:, None],
-                query.visible[:, None].float(),
-            )
-        energies = set_energy(kept, weights, kept_residuals, self.config.omega)
+        n_sets = kept.shape[1]
+        energies = self._set_energies(
+            kept.flatten(0, 1),
+            weights.flatten(0, 1),
+            kept_residuals.flatten(0, 1),
+            params.flatten(0, 1),
+            query.take(torch.arange(len(kept), device=kept.device).repeat_interleave(n_sets)),
+        ).view(-1, n_sets)
         usable = self.usable_sets(query.visible)
         return energies, torch.where(usable, energies, torch.inf).argmin(-1)
+
+    def _set_energies(self, kept, weights, kept_residuals, params, problems: Query):
+        """eq:energyS of P (pose, set) problems: kept (P, K_w, 14, 3); weights, kept_residuals
+        (P, K_w); params (P, 6); problems: the P poses. Returns (P,)."""
+        if self.config.select_on_all_joints:
+            kept_residuals = projection_energy(
+                project(kept, params, problems.frame),
+                problems.joints_2d,
+                problems.visible.float(),
+            )
+        return set_energy(kept, weights, kept_residuals, self.config.omega)
 
     def usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
         """(B, S) bool: a set with a hidden joint only counts when every set has one."""
@@ -284,12 +269,20 @@ class Lifter:
         camera-oriented, root at the hip midpoint, with the person's proportions, and its
         projection (B, 6)."""
         rows = torch.arange(len(best), device=best.device)
+        masks = self.set_masks[best] * query.visible.float()
+        return self._fit_pose(
+            kept[rows, best], weights[rows, best], params[rows, best], query, masks
+        )
+
+    def _fit_pose(self, kept, weights, params, query: Query, masks):
+        """fit_pose on each pose's own neighbours: kept (B, K_w, 14, 3), weights (B, K_w),
+        params (B, 6), masks (B, 14) the joints E_p uses."""
         pose, projection = fit_pose(
-            kept[rows, best],
-            weights[rows, best],
-            params[rows, best],
+            kept,
+            weights,
+            params,
             query.joints_2d,
-            self.set_masks[best] * query.visible.float(),
+            masks,
             query.frame,
             self.config.omega,
             self.config.pca_components,
@@ -300,28 +293,55 @@ class Lifter:
         return oriented - hip_midpoint(oriented)[:, None], projection
 
     def fit_projections(self, candidates, query: Query, start=None):
-        """eq:projerr1 for every (pose, set), all B * S problems in one solve on all 14 joints,
-        each set's own masked, on the set's `projection_neighbours` nearest neighbours.
-        candidates: (B, S, K, 14, 3); start: optional (B, S, 6). Returns params (B, S, 6) and
-        the residuals of all K neighbours under them (B, S, K)."""
+        """eq:projerr1 for every (pose, set): candidates (B, S, K, 14, 3); start: optional
+        (B, S, 6). Returns params (B, S, 6) and the residuals of all K neighbours (B, S, K)."""
         b, n_sets = candidates.shape[:2]
         masks = self.set_masks[None] * query.visible[:, None].float()  # (B, S, 14)
-        params = fit_projection(
-            candidates[:, :, : self.config.projection_neighbours].flatten(0, 1),
-            query.joints_2d.repeat_interleave(n_sets, 0),
+        rows = torch.arange(b, device=candidates.device).repeat_interleave(n_sets)
+        params, residuals = self._fit_projections(
+            candidates.flatten(0, 1),
+            query.take(rows),
             masks.flatten(0, 1),
-            query.frame.repeat(n_sets),
             None if start is None else start.flatten(0, 1),
+        )
+        return params.view(b, n_sets, -1), residuals.view(b, n_sets, -1)
+
+    def _fit_projections(self, candidates, problems: Query, masks, start=None):
+        """eq:projerr1 for P (pose, set) problems, all in one solve on all 14 joints with the
+        set's own masked (masks (P, 14)), on the `projection_neighbours` nearest of the K
+        candidates (P, K, 14, 3). Returns params (P, 6) and the residuals of all K (P, K)."""
+        params = fit_projection(
+            candidates[:, : self.config.projection_neighbours],
+            problems.joints_2d,
+            masks,
+            problems.frame,
+            start,
             self.config.projection_iterations,
-        ).view(b, n_sets, -1)
-        projected = project(candidates, params, query.frame.unsqueeze(1))
-        return params, projection_energy(projected, query.joints_2d[:, None], masks)
+        )
+        projected = project(candidates, params, problems.frame)
+        return params, projection_energy(projected, problems.joints_2d, masks)
+
+    def _retrieve_problems(self, joints_2d, row: torch.Tensor, set_index: torch.Tensor):
+        """K neighbours of each (pose, set) problem: joints_2d (B, 14, 2) px; row, set_index
+        (P,) on the CPU. Returns (P, K, 14, 3) mm, camera-oriented."""
+        ids = torch.empty(len(row), self.config.neighbours, dtype=torch.long)
+        for s in set_index.unique().tolist():
+            take = (set_index == s).nonzero()[:, 0]
+            name = (self.config.joint_sets[s],)
+            found = self.retriever.search(
+                joints_2d[row[take].to(joints_2d.device)],
+                self.config.neighbours,
+                self.config.nprobe,
+                name,
+            )
+            ids[take] = found[:, 0].cpu()
+        return self.database.candidates(ids.to(self.device))
 
     def weight_neighbours(self, candidates, scores):
-        """eq:wt/eq:wtn. candidates: (B, S, K, 14, 3); scores: (B, S, K), higher is better.
-        Returns the kept neighbours (B, S, K_w, 14, 3), weights (B, S, K_w) and their -scores."""
+        """eq:wt/eq:wtn. candidates: (..., K, 14, 3); scores: (..., K), higher is better.
+        Returns the kept neighbours (..., K_w, 14, 3), weights (..., K_w) and their -scores."""
         if not self.config.weighting:
             return candidates, torch.ones_like(scores), -scores
         index, weights = top_weighted(scores, self.config.weighted_neighbours)
-        kept = torch.take_along_dim(candidates, index[..., None, None], dim=2)
-        return kept, weights, -torch.take_along_dim(scores, index, dim=2)
+        kept = torch.take_along_dim(candidates, index[..., None, None], dim=-3)
+        return kept, weights, -torch.take_along_dim(scores, index, dim=-1)
