@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Load-test matrix on this machine: for each max_batch_size, start the service on the bundled
-# model (one model thread), run closed-loop tests at several concurrencies, stop it.
+# Load-test matrix on this machine: for each batch size (the endpoint's: DS3D_MAX_BATCH_SIZE for
+# pose, DS3D_MAX_LIFT_BATCH_SIZE for lift), start the service on the bundled model, run
+# closed-loop tests at several concurrencies, stop it.
 #   docker/loadtest_matrix.sh [DURATION_S] [OUT_DIR]
 #   ENDPOINT=pose IMAGES=../shared/data/lsp/images docker/loadtest_matrix.sh   # real images
 #   (IMAGES: a folder of images, or a quoted glob such as '../photos/*.jpg'; for lift, POSES=FILE
@@ -26,7 +27,8 @@ export OMP_NUM_THREADS=1
 
 for B in ${BATCH_SIZES:-1 16}; do
     mkdir -p "$OUT"
-    DS3D_MAX_BATCH_SIZE=$B DS3D_PORT=$PORT $PY -m service >"$OUT/server_b$B.log" 2>&1 &
+    if [ "$ENDPOINT" = pose ]; then BATCH_VAR=DS3D_MAX_BATCH_SIZE; else BATCH_VAR=DS3D_MAX_LIFT_BATCH_SIZE; fi
+    env "$BATCH_VAR=$B" DS3D_PORT=$PORT $PY -m service >"$OUT/server_b$B.log" 2>&1 &
     SERVER=$!
     trap 'kill $SERVER 2>/dev/null || true' EXIT
     for _ in $(seq 120); do

@@ -88,21 +88,23 @@ def start_batchers(
 ) -> Runtime:
     """A running batcher per model queue; no pose queue when the engine has no 2D stage."""
 
-    def start(name: str, run_batch) -> MicroBatcher:
+    def start(name: str, run_batch, batch_size: int, queue: int) -> MicroBatcher:
         batcher = MicroBatcher(
             run_batch,
             executor=executor,
-            max_batch_size=settings.max_batch_size,
+            max_batch_size=batch_size,
             max_wait_s=settings.max_wait_ms / 1000.0,
-            max_queue=settings.max_queue,
+            max_queue=queue,
             on_batch=metrics.batch_observer(name),
         )
         metrics.queue_depth.labels(name).set_function(lambda: batcher.depth)
         batcher.start()
         return batcher
 
-    lift = start("lift", engine.lift_batch)
-    pose = start("pose", engine.pose_batch) if engine.pipeline is not None else None
+    lift = start("lift", engine.lift_batch, settings.max_lift_batch_size, settings.max_lift_queue)
+    pose = None
+    if engine.pipeline is not None:
+        pose = start("pose", engine.pose_batch, settings.max_batch_size, settings.max_queue)
     if pose is None:
         log.warning("/v1/pose disabled: %s", engine.pose_unavailable)
     return Runtime(engine, lift, pose)

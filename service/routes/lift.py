@@ -53,7 +53,7 @@ async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleD
     t0 = time.perf_counter()
     rt = runtime.require()
     # A request larger than the whole queue could never be taken: 413, not a 503 to retry.
-    most = min(settings.max_lift_items, settings.max_queue)
+    most = min(settings.max_lift_items, settings.max_lift_queue)
     if len(body.items) > most:
         why = f"{len(body.items)} items, at most {most}"
         raise ApiError(413, "too_many_items", why)

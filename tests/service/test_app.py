@@ -68,7 +68,9 @@ def engine():
 
 @pytest.fixture(scope="module")
 def url(engine):
-    with serve(engine, max_batch_size=16, max_wait_ms=30, max_image_bytes=MAX_IMAGE_BYTES) as u:
+    with serve(
+        engine, max_lift_batch_size=16, max_wait_ms=30, max_image_bytes=MAX_IMAGE_BYTES
+    ) as u:
         yield u
 
 
@@ -306,7 +308,7 @@ def test_pose_matches_the_pipeline(pose_engine):
 
 def test_full_queue_answers_503_at_once(engine, poses):
     # The batch waits up to 2 s for company, so the first request's items stay queued.
-    with serve(engine, max_queue=4, max_batch_size=64, max_wait_ms=2000) as u:
+    with serve(engine, max_lift_queue=4, max_lift_batch_size=64, max_wait_ms=2000) as u:
         first: list[httpx.Response] = []
         waiter = threading.Thread(
             target=lambda: first.append(post_lift(u, {"items": [good_item(poses)] * 4}))
@@ -329,7 +331,7 @@ def test_full_queue_answers_503_at_once(engine, poses):
 
 def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses):
     # The batch waits 300 ms for company, the deadline is 50 ms.
-    with serve(engine, max_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
+    with serve(engine, max_lift_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
         assert_error(post_lift(u, {"items": [good_item(poses)]}), 504, "timeout")
         assert httpx.get(f"{u}/healthz").status_code == 200
         assert httpx.get(f"{u}/readyz").status_code == 200
@@ -343,7 +345,7 @@ def test_shutdown_answers_the_queued_requests(engine, poses):
     def call(u):
         results.append(post_lift(u, {"items": [good_item(poses)]}, timeout=30).status_code)
 
-    with serve(engine, max_batch_size=64, max_wait_ms=1000) as u:
+    with serve(engine, max_lift_batch_size=64, max_wait_ms=1000) as u:
         threads = [threading.Thread(target=call, args=(u,)) for _ in range(4)]
         for t in threads:
             t.start()
