@@ -17,6 +17,7 @@ camera frame), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -121,10 +122,13 @@ class Lifter:
         cache_indices: bool = True,
     ):
         self.device = torch.device(device)
-        self.database = database
         self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
-        self.database.poses = self.database.poses.to(self.device)
-        self.database.rotations = self.database.rotations.to(self.device)
+        # the candidates are gathered and rotated on the device; faiss searches on the CPU
+        self.database = dataclasses.replace(
+            database,
+            poses=database.poses.to(self.device),
+            rotations=database.rotations.to(self.device),
+        )
         self.configure(config)
         self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
 

@@ -153,3 +153,19 @@ def test_bad_intrinsics_and_visibility_raise(lifter):
         lifter.lift(joints, intrinsics=np.zeros((3, 3)))
     with pytest.raises(InvalidPose, match="visible"):
         lifter.lift(joints, visible=np.zeros((1, 14), dtype=bool))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_the_lifter_runs_on_cuda_as_on_the_cpu(lifter, cases):
+    """device="cuda": the database and every fit on the GPU, faiss on the CPU; the same poses."""
+    from ds3d.lifter import Lifter
+
+    on_gpu = Lifter(lifter.database, lifter.config, device="cuda")
+    part = cases.subset(np.arange(16))
+    visible = np.ones((16, 14), dtype=bool)
+    visible[3, L_WRIST] = False
+    gpu = on_gpu.lift(part.joints_2d, visible, part.intrinsics)
+    cpu = lifter.lift(part.joints_2d, visible, part.intrinsics)
+    assert gpu.joints_3d.device.type == "cpu"  # results come back to the host
+    torch.testing.assert_close(gpu.joints_3d, cpu.joints_3d, atol=2.0, rtol=0)  # mm
+    assert gpu.joint_set == cpu.joint_set

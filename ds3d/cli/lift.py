@@ -47,7 +47,7 @@ def register(commands, evals, benches) -> None:
     )
     p.add_argument(
         "--variants",
-        default="clean,noise5,noise10,outlier40,all-only,unweighted",
+        default="clean,noise5,noise10,outlier40,every-set,unweighted",
         help="comma-separated input/algorithm variants (ds3d.evaluation.h36m.VARIANTS)",
     )
     p.add_argument("--out", type=Path, help="JSON report")

@@ -127,18 +127,24 @@ def evaluate(lifter, cases: ProtocolCases, noise_px=0.0, outlier_px=0.0, seed=0,
 
 
 # Variants of the protocol: (perturbation of the 2D input, LifterConfig overrides).
+EVERY_SET = {"partial_sets": "always"}  # the paper: every set scored for every pose
 VARIANTS: dict[str, tuple[dict, dict]] = {
     "clean": ({}, {}),
     "noise5": ({"noise_px": 5.0}, {}),
     "noise10": ({"noise_px": 10.0}, {}),
     "outlier40": ({"outlier_px": 40.0}, {}),
-    "all-only": ({}, {"joint_sets": ("all",)}),
-    "all-only-outlier40": ({"outlier_px": 40.0}, {"joint_sets": ("all",)}),
-    "paper-selection": ({}, {"select_on_all_joints": False}),
-    "paper-selection-outlier40": ({"outlier_px": 40.0}, {"select_on_all_joints": False}),
+    "every-set": ({}, EVERY_SET),
+    "every-set-outlier40": ({"outlier_px": 40.0}, EVERY_SET),
+    "paper-selection": ({}, {**EVERY_SET, "select_on_all_joints": False}),
+    "paper-selection-outlier40": (
+        {"outlier_px": 40.0},
+        {**EVERY_SET, "select_on_all_joints": False},
+    ),
     "unweighted": ({}, {"weighting": False}),
-    "projection-fit-20": ({}, {"projection_iterations": 20}),
-    "pose-fit-30": ({}, {"pose_iterations": 30}),
+    "database-proportions": ({}, {"proportions": False}),
+    "database-proportions-noise10": ({"noise_px": 10.0}, {"proportions": False}),
+    "projection-fit-6": ({}, {"projection_iterations": 6}),
+    "pose-fit-12": ({}, {"pose_iterations": 12}),
     "nprobe16": ({}, {"nprobe": 16}),
 }
 
