@@ -154,6 +154,7 @@ class Lifter:
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
         return cls(PoseDatabase.load(directory / database), config, device)
 
+    @torch.inference_mode()  # no autograd anywhere: a third less overhead per op at batch 1
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
         optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose.
@@ -165,11 +166,11 @@ class Lifter:
         on_device = row.to(dev), set_index.to(dev)
         problems = query.take(on_device[0])
         masks = self.set_masks[on_device[1]] * problems.visible.float()  # (P, 14)
-        with torch.no_grad(), stage_timer(timings, "retrieval", dev):
+        with stage_timer(timings, "retrieval", dev):
             poses = self._retrieve_problems(query.joints_2d, row, set_index)
         with stage_timer(timings, "projection_fit", dev):
             params, residuals = self._fit_projections(poses, problems, masks)
-        with torch.no_grad(), stage_timer(timings, "selection", dev):
+        with stage_timer(timings, "selection", dev):
             kept, weights, kept_residuals = self.weight_neighbours(poses, -residuals)
             energy = self._set_energies(kept, weights, kept_residuals, params, problems)
             energies = torch.full((b, len(self.set_ids)), torch.inf, device=dev)
@@ -179,7 +180,7 @@ class Lifter:
             problem_of = torch.zeros(b, len(self.set_ids), dtype=torch.long, device=dev)
             problem_of[on_device] = torch.arange(len(row), device=dev)
             chosen = problem_of[torch.arange(b, device=dev), best]
-        with torch.no_grad(), stage_timer(timings, "pose_fit", dev):
+        with stage_timer(timings, "pose_fit", dev):
             pose, projection = self._fit_pose(
                 kept[chosen], weights[chosen], params[chosen], query, masks[chosen]
             )
@@ -211,6 +212,7 @@ class Lifter:
         k = intrinsics_batch(intrinsics, len(x))
         return Query(x, vis, image_frame(x, vis, None if k is None else k.to(self.device)))
 
+    @torch.inference_mode()
     def neighbours(
         self,
         query: Query,
@@ -221,7 +223,7 @@ class Lifter:
         projection M_s of each set fitted to them. start: optional (B, S, 6) projections to
         start the fit from (a previous iteration's). Adds the stages' ms to `timings`."""
         timings = {} if timings is None else timings
-        with torch.no_grad(), stage_timer(timings, "retrieval", self.device):
+        with stage_timer(timings, "retrieval", self.device):
             poses = self.retrieve(query.joints_2d)
         with stage_timer(timings, "projection_fit", self.device):
             params, residuals = self.fit_projections(poses, query, start)

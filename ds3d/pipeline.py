@@ -158,6 +158,7 @@ class Pipeline:
         estimate = self.estimator.estimate(list(images), bboxes)
         return self.lift_estimate(estimate, intrinsics, iterations)
 
+    @torch.inference_mode()
     def lift_estimate(
         self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None
     ) -> PipelineResult:
@@ -189,8 +190,7 @@ class Pipeline:
         with stage_timer(timings, "pose_fit", dev):
             pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, query, best.joint_set)
         x = query.joints_2d
-        with torch.no_grad():
-            probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
+        probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
         timings["total"] = 1000 * elapsed
         return PipelineResult(
@@ -220,11 +220,11 @@ class Pipeline:
         lifter, dev = self.lifter, self.lifter.device
         found = lifter.neighbours(query, start, timings)
         frame = query.frame.unsqueeze(1)
-        with torch.no_grad(), stage_timer(timings, "weighting", dev):
+        with stage_timer(timings, "weighting", dev):
             scores = neighbour_scores(est, project(found.poses, found.params, frame))
             kept, weights, _ = lifter.weight_neighbours(found.poses, scores)
             kept_2d = project(kept, found.params, frame)
-        with torch.no_grad(), stage_timer(timings, "refinement", dev):
+        with stage_timer(timings, "refinement", dev):
             ref = refine(est, self.estimator.params, kept_2d, weights, cfg)
             if cfg.selection == "posterior":
                 usable = lifter.usable_sets(query.visible)
