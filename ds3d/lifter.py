@@ -50,7 +50,7 @@ class LifterConfig:
     # eq:projerr1 on the nearest neighbours only: M is six numbers, which a few dozen poses
     # seen from nearly the same view pin down as well as all K
     projection_neighbours: int = 32
-    projection_iterations: int = 2  # Gauss-Newton steps of eq:projerr1
+    projection_iterations: int = 1  # Gauss-Newton steps of eq:projerr1
     pose_iterations: int = 4  # Gauss-Newton steps of eq:energyMin2
     proportions: bool = True  # estimate the person's bone-group scales (False: the database's)
     # eq:energyS scores each set's neighbours by E_p on all visible joints; False: on the set's
