@@ -1,7 +1,7 @@
 """ds3d.Lifter: 2D poses in, 3D poses out, by the 3D stage of the paper (Section 4).
 
     retrieval      K neighbours per joint set from the pose database        (ds3d.mocap.retrieval)
-    projection fit M_s per set, eq:projerr1, batched L-BFGS                  (ds3d.fit.solve)
+    projection fit M_s per set, eq:projerr1, batched Gauss-Newton            (ds3d.fit.solve)
     weighting      keep the K_w best neighbours, eq:wtn                     (ds3d.fit.selection)
     set choice     s^ by eq:energyS, E_p on all visible joints              (ds3d.fit.selection)
     3D fit         X^ by eq:energyMin2 over PCA(18) of the neighbours       (ds3d.fit.solve)

@@ -144,8 +144,8 @@ def test_batch_results_equal_one_by_one_results(pipeline, images):
         single = pipeline.lift_estimate(single_estimate)
         torch.testing.assert_close(single.joints_2d[0], batch.joints_2d[i], atol=1e-3, rtol=0)
         torch.testing.assert_close(single.psm_energy[0], batch.psm_energy[i])
-        # the batched L-BFGS pose fit sums in another order: millimetre differences (up to 1.2
-        # mm on these images with the bundled 2D model)
+        # the batched pose fit sums in another order: millimetre differences (up to 1.2 mm on
+        # these images with the bundled 2D model)
         torch.testing.assert_close(single.joints_3d[0], batch.joints_3d[i], atol=2.0, rtol=0)
         assert single.joint_set[0] == batch.joint_set[i]
 

@@ -1,12 +1,12 @@
 """The projection M of the paper: a rotation and a translation, with known intrinsics
 (perspective) or without (weak perspective).
 
-Both models have six parameters per problem, all of order one so that L-BFGS sees a well-scaled
+Both models have six parameters per problem, all of order one so that the solver sees a well-scaled
 problem: params = (r (3): axis-angle rotation, a, b, w).
 - Perspective, intrinsics K given: X_cam = R X + depth * (a * spread / f, b * spread / f, 1) with
   depth = exp(w) * DEPTH_UNIT mm; uv = K X_cam / z. (a, b) is the root's image position in units of
   the 2D pose's spread, so that a unit of a, of b or of rotation moves the joints by a similar
-  number of pixels: L-BFGS then sees a well-conditioned problem.
+  number of pixels: the solver then sees a well-conditioned problem.
 - Weak perspective, no intrinsics: uv = centre + spread * (exp(w) * (R X)_xy / DEPTH_UNIT + (a, b)),
   where `centre` (px) and `spread` (px) are fixed per problem from the 2D pose being fitted. This
   is an orthographic camera with unknown scale: what a person far from the camera looks like.
