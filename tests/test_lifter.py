@@ -147,6 +147,18 @@ def test_bad_input_raises_a_clear_error(lifter, joints, message):
         lifter.lift(joints)
 
 
+def test_nonsense_2d_still_gives_a_finite_body(lifter):
+    # uniform noise and collapsed poses: no NaN, and bones held within reach of the database's
+    rng = np.random.default_rng(0)
+    scattered = rng.uniform(0, 1000, (16, 14, 2))
+    collapsed = rng.uniform(0, 1000, (16, 1, 2)) + rng.normal(0, 0.01, (16, 14, 2))
+    for joints in (scattered, collapsed):
+        result = lifter.lift(joints)
+        assert bool(torch.isfinite(result.joints_3d).all())
+        bones = result.bone_lengths
+        assert bool(((bones > 10) & (bones < 1000)).all()), bones
+
+
 def test_bad_intrinsics_and_visibility_raise(lifter):
     joints = np.random.default_rng(0).uniform(100, 400, (1, 14, 2))
     with pytest.raises(InvalidPose, match="intrinsics"):

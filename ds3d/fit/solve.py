@@ -162,7 +162,9 @@ def fit_pose(
     z, _ = gauss_newton.minimize(evaluate, problem.start(), first)
     (projection_term, *_) = evaluate(z, False)
     misfit = (projection_term.squared[:, 0] / NUM_JOINTS).sqrt() / frame.spread
-    strength.copy_((misfit / NOISE_REFERENCE).clamp_min(1) ** 4)  # evaluate reads it
+    # evaluate reads it; at most 100x, the database's proportions in effect, beyond which the
+    # normal equations grow ill-conditioned in float32
+    strength.copy_(((misfit / NOISE_REFERENCE).clamp_min(1) ** 4).clamp_max(100))
     z, _ = gauss_newton.minimize(evaluate, z, iterations - first)
     return problem.person(z), problem.projection(z, params)
 
