@@ -63,6 +63,12 @@ class LifterConfig:
     index: IndexConfig = field(default_factory=IndexConfig)
 
 
+# The paper's algorithm without ds3d's departures for speed and proportions, the ablations'
+# reference: every set scored for every pose, the projection fitted to all K neighbours, the
+# database's proportions. dataclasses.replace(LifterConfig(), **PAPER_OVERRIDES).
+PAPER_OVERRIDES = {"partial_sets": "always", "projection_neighbours": 256, "proportions": False}
+
+
 @dataclass(frozen=True)
 class Query:
     """A batch of 2D poses as the stages take them: joints_2d (B, 14, 2) px, visible (B, 14)

@@ -21,6 +21,7 @@ import torch
 from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_sequences
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
+from ds3d.lifter import PAPER_OVERRIDES
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
 
 
@@ -143,6 +144,8 @@ VARIANTS: dict[str, tuple[dict, dict]] = {
     "unweighted": ({}, {"weighting": False}),
     "database-proportions": ({}, {"proportions": False}),
     "database-proportions-noise10": ({"noise_px": 10.0}, {"proportions": False}),
+    "paper": ({}, PAPER_OVERRIDES),
+    "paper-noise10": ({"noise_px": 10.0}, PAPER_OVERRIDES),
     "projection-fit-6": ({}, {"projection_iterations": 6}),
     "pose-fit-12": ({}, {"pose_iterations": 12}),
     "nprobe16": ({}, {"nprobe": 16}),
