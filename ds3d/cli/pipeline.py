@@ -1,4 +1,5 @@
-"""The pipeline's commands: `ds3d predict`, `ds3d gallery`, `ds3d eval lsp-pipeline`."""
+"""The pipeline's commands: `ds3d predict`, `ds3d gallery`, `ds3d eval lsp-pipeline`, `ds3d eval
+people`."""
 
 from __future__ import annotations
 
@@ -54,6 +55,18 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--out", type=Path, help="JSON report")
     add_model_options(p)
     p.set_defaults(func=eval_lsp_pipeline)
+
+    p = evals.add_parser(
+        "people", help="people of any size in 640x480 canvases built from LSP: detection and PCK"
+    )
+    p.add_argument("--split", choices=("test", "train"), default="test", help="LSP's people")
+    p.add_argument("--count", type=int, default=200, help="canvases")
+    p.add_argument("--seed", type=int, default=0, help="draws the canvases")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--save", type=Path, help="also write the canvases as PNG into this folder")
+    p.add_argument("--out", type=Path, help="JSON report")
+    add_model_options(p)
+    p.set_defaults(func=eval_people)
 
 
 def load_pipeline(args):
@@ -171,6 +184,40 @@ def eval_lsp_pipeline(args) -> int:
         "n_images": len(ann),
         "threads": args.threads,
         **results,
+    }
+    write_report(report, args.out)
+    return 0
+
+
+def eval_people(args) -> int:
+    """ds3d.evaluation.people's protocol with the pipeline run on whole canvases, no box."""
+    import time
+
+    import cv2
+
+    from ds3d.data.lsp import load_lsp
+    from ds3d.evaluation.people import protocol, score
+
+    pipeline = load_pipeline(args)
+    canvases = protocol(load_lsp(split=args.split), args.count, args.seed)
+    if args.save:
+        args.save.mkdir(parents=True, exist_ok=True)
+        for i, canvas in enumerate(canvases):
+            cv2.imwrite(str(args.save / f"{i:04d}.png"), canvas.image[..., ::-1])
+    predictions = []
+    start = time.perf_counter()
+    for first in range(0, len(canvases), args.batch):
+        part = canvases[first : first + args.batch]
+        result = pipeline.estimate([c.image for c in part])
+        predictions += [(pose[None], np.ones(1)) for pose in result.joints_2d.numpy()]
+    seconds = time.perf_counter() - start
+    report = {
+        "split": args.split,
+        "seed": args.seed,
+        "threads": args.threads,
+        "people_per_image": "the best person (the pipeline finds one per image)",
+        "images_per_s": round(len(canvases) / seconds, 2),
+        **score(canvases, predictions),
     }
     write_report(report, args.out)
     return 0

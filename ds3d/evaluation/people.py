@@ -1,0 +1,204 @@
+"""People in photos: a protocol built from LSP test, and its detection and pose scores.
+
+LSP's images are crops around one person. A canvas (640 x 480 by default) holds 1 to 3 of them,
+each scaled so that its person spans a drawn fraction of the canvas height (15-100 %), pasted at
+a random place where it covers no other person; the first pasted image (the largest person),
+its border replicated, also fills the rest of the canvas, so the background is image content
+without people. Everything is drawn from one seed: the same seed gives the same canvases.
+
+Scores, per person size (the person's height as a fraction of the canvas height): detection
+recall and precision at IoU >= 0.5 between person boxes (the box of the annotated joints, widened
+by BOX_MARGIN on every side, for the truth and the prediction alike), and PCK@0.2 of the people
+found (ds3d.evaluation.metrics.pck).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ds3d.data.lsp import PoseAnnotations
+from ds3d.image_io import read_image
+
+CANVAS = (640, 480)  # width, height px
+SIZE_BINS = ((0.15, 0.25), (0.25, 0.5), (0.5, 1.0))  # person height / canvas height
+BOX_MARGIN = 0.1  # of the joints' extent, on every side
+
+
+@dataclass(frozen=True)
+class Canvas:
+    """One protocol image: image (H, W, 3) uint8 RGB; joints (P, 14, 2) px and located (P, 14)
+    bool of the P people on it; sources (P,) their LSP indices; heights (P,) their size (the
+    longer side of their joints' extent) as a fraction of the canvas height."""
+
+    image: np.ndarray
+    joints: np.ndarray
+    located: np.ndarray
+    sources: np.ndarray
+    heights: np.ndarray
+
+    def boxes(self) -> np.ndarray:
+        """(P, 4) x0, y0, x1, y1 px: each person's box (person_boxes)."""
+        return person_boxes(self.joints, self.located)
+
+
+def person_boxes(joints: np.ndarray, located: np.ndarray | None = None) -> np.ndarray:
+    """(P, 14, 2) px (and (P, 14) bool, the joints to use) -> (P, 4) x0, y0, x1, y1 px: the
+    joints' bounding box widened by BOX_MARGIN of its extent on every side."""
+    joints = np.asarray(joints, dtype=np.float64)
+    mask = np.ones(joints.shape[:2], bool) if located is None else np.asarray(located, bool)
+    low = np.where(mask[..., None], joints, np.inf).min(1)
+    high = np.where(mask[..., None], joints, -np.inf).max(1)
+    pad = BOX_MARGIN * (high - low)
+    return np.concatenate([low - pad, high + pad], 1)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection over union of boxes a (N, 4) and b (M, 4) -> (N, M)."""
+    top_left = np.maximum(a[:, None, :2], b[None, :, :2])
+    bottom_right = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.clip(bottom_right - top_left, 0, None).prod(-1)
+    area_a = (a[:, 2:] - a[:, :2]).prod(-1)
+    area_b = (b[:, 2:] - b[:, :2]).prod(-1)
+    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
+
+
+def match(predicted: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = 0.5):
+    """Greedy matching, best score first, of predicted boxes (N, 4) to true boxes (M, 4) at IoU
+    >= threshold, each true box taken once. Returns (M,) int: the prediction matched to each true
+    box, -1 for none."""
+    found = np.full(len(truth), -1)
+    if len(predicted) == 0 or len(truth) == 0:
+        return found
+    overlap = iou(predicted, truth)
+    for p in np.argsort(-np.asarray(scores), kind="stable"):
+        free = np.where(found < 0, overlap[p], -1.0)
+        best = int(free.argmax())
+        if free[best] >= threshold:
+            found[best] = p
+    return found
+
+
+def compose(
+    annotations: PoseAnnotations,
+    sources: list[int],
+    heights: list[float],
+    rng: np.random.Generator,
+    size: tuple[int, int] = CANVAS,
+    tries: int = 50,
+) -> Canvas:
+    """One canvas of the people `sources` (LSP indices), each scaled to its fraction of `heights`
+    of the canvas height and placed where its pasted image covers no person already there (a
+    person that finds no such place in `tries` draws is left out; the first always fits)."""
+    width, height = size
+    canvas: np.ndarray | None = None
+    placed_boxes: list[np.ndarray] = []
+    people = []
+    for source, fraction in zip(sources, heights, strict=True):
+        image = read_image(annotations.image_paths[source])
+        located = annotations.located[source]
+        joints = annotations.joints[source]
+        extent = np.ptp(joints[located], axis=0).max()  # standing or lying, its longer side
+        scale = fraction * height / max(extent, 1.0)
+        patch = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        points = joints * scale
+        patch, points = _fit_patch(patch, points, located, size)
+        ph, pw = patch.shape[:2]
+        for _ in range(tries):
+            x, y = int(rng.integers(0, width - pw + 1)), int(rng.integers(0, height - ph + 1))
+            rect = np.array([[x, y, x + pw, y + ph]], np.float64)
+            shifted = points + np.array([x, y])
+            person = person_boxes(shifted[None], located[None])
+            hidden = placed_boxes and (iou(rect, np.concatenate(placed_boxes)) > 0).any()
+            if canvas is None or not hidden:
+                break
+        else:
+            continue
+        if canvas is None:  # the first image, its border replicated, is the background
+            canvas = cv2.copyMakeBorder(
+                patch, y, height - y - ph, x, width - x - pw, cv2.BORDER_REPLICATE
+            )
+        canvas[y : y + ph, x : x + pw] = patch
+        placed_boxes.append(person)
+        people.append((shifted, located, source, fraction))
+    joints, located, sources_kept, fractions = zip(*people, strict=True)
+    return Canvas(
+        canvas,
+        np.stack(joints).astype(np.float32),
+        np.stack(located),
+        np.array(sources_kept),
+        np.array(fractions),
+    )
+
+
+def _fit_patch(patch, points, located, size):
+    """Crop a scaled image to at most the canvas size, around its person: (patch, points)."""
+    width, height = size
+    ph, pw = patch.shape[:2]
+    centre = (points[located].min(0) + points[located].max(0)) / 2
+    x0 = int(np.clip(centre[0] - width / 2, 0, max(pw - width, 0)))
+    y0 = int(np.clip(centre[1] - height / 2, 0, max(ph - height, 0)))
+    patch = patch[y0 : y0 + height, x0 : x0 + width]
+    return np.ascontiguousarray(patch), points - np.array([x0, y0])
+
+
+def protocol(annotations: PoseAnnotations, count: int, seed: int = 0) -> list[Canvas]:
+    """`count` canvases of 1-3 people each, every person's size drawn uniformly from one of
+    SIZE_BINS (the bin too), people drawn without replacement from `annotations`."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(annotations.image_paths))
+    canvases, next_person = [], 0
+    for _ in range(count):
+        n = int(rng.integers(1, 4))
+        sources = [int(order[(next_person + i) % len(order)]) for i in range(n)]
+        next_person += n
+        heights = [float(rng.uniform(*SIZE_BINS[rng.integers(len(SIZE_BINS))])) for _ in sources]
+        # the largest first: it fills the background and the small ones fit around it
+        ranked = sorted(zip(heights, sources, strict=True), reverse=True)
+        canvases.append(compose(annotations, [s for _, s in ranked], [h for h, _ in ranked], rng))
+    return canvases
+
+
+def score(canvases: list[Canvas], predictions: list[tuple[np.ndarray, np.ndarray]]) -> dict:
+    """Recall and PCK@0.2 per size bin and overall, precision overall. predictions: per
+    canvas, the predicted poses (N, 14, 2) px and their scores (N,), higher = surer."""
+    from ds3d.evaluation.metrics import pck
+
+    rows = []  # (size fraction, matched?, predicted joints or None, true joints, located)
+    false_positives = 0
+    total_predictions = 0
+    for canvas, (poses, scores) in zip(canvases, predictions, strict=True):
+        poses = np.asarray(poses, np.float64).reshape(-1, 14, 2)
+        found = match(person_boxes(poses), scores, canvas.boxes())
+        total_predictions += len(poses)
+        false_positives += len(poses) - int((found >= 0).sum())
+        for person, p in enumerate(found):
+            rows.append(
+                (
+                    canvas.heights[person],
+                    p >= 0,
+                    poses[p] if p >= 0 else None,
+                    canvas.joints[person],
+                    canvas.located[person],
+                )
+            )
+    report: dict = {"canvases": len(canvases), "people": len(rows), "bins": {}}
+
+    def summary(selected) -> dict:
+        matched = [r for r in selected if r[1]]
+        out = {"people": len(selected), "recall": len(matched) / max(len(selected), 1)}
+        if matched:
+            pred = np.stack([r[2] for r in matched])
+            truth = np.stack([r[3] for r in matched])
+            located = np.stack([r[4] for r in matched])
+            out["pck@0.2"] = float(pck(pred, truth, located).mean())
+        return out
+
+    for low, high in SIZE_BINS:
+        name = f"{round(100 * low)}-{round(100 * high)}%"
+        report["bins"][name] = summary([r for r in rows if low <= r[0] < high or r[0] == high])
+    report["all"] = summary(rows)
+    report["all"]["precision"] = (total_predictions - false_positives) / max(total_predictions, 1)
+    return report
