@@ -95,7 +95,9 @@ def minimize(
     for _ in range(iterations):
         diagonal = hessian.diagonal(dim1=-2, dim2=-1)
         damped = hessian + torch.diag_embed(lam[:, None] * diagonal + 1e-9)
-        trial = retract(x, -torch.linalg.solve(damped, gradient))
+        step, info = torch.linalg.solve_ex(damped, gradient)
+        # a singular system (a problem with no data on an unknown) takes no step, not the batch down
+        trial = retract(x, -torch.where((info == 0)[:, None], step, 0.0))
         trial_value, trial_hessian, trial_gradient = _system(evaluate(trial, True))
         better = trial_value <= value
         x = _where(better, trial, x)
