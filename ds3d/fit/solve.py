@@ -173,6 +173,9 @@ def fit_pose(
 # person's proportions strengthens (as its fourth power): after the first steps the median is
 # 0.02 for clean 2D and for rescaled bodies, 0.08 with 10 px of noise (S9, docs/RESULTS.md).
 NOISE_REFERENCE = 0.04
+# The spread of the prior that holds the projection's (a, b, w) where the 2D is noisy: 5 % of the
+# pose's spread and of its depth (S9: noisy 72.4 -> 71.3 mm, clean and rescaled unchanged).
+SHIFT_SD = 0.05
 
 
 class PoseProblem:
@@ -224,7 +227,8 @@ class PoseProblem:
     ):
         """The energy's residuals as ds3d.fit.gauss_newton takes them: E_p of the person under
         the projection params (B, 6), E_r and E_a of the pose, the prior on the scales
-        (omega.proportions times prior_strength (B,), read at each evaluation)."""
+        (omega.proportions times prior_strength (B,), read at each evaluation) and, with the
+        strength beyond one, on the projection's change (in SHIFT_SD)."""
         b, c, g = len(self.mean), self.components, self.groups
         n = c + g + self.shifts
         rotation = rotation_matrix(params[:, :3])
@@ -240,6 +244,8 @@ class PoseProblem:
         prior_sd = GROUP_LOG_SD.to(self.mean)[:g] / GROUP_LOG_SD.pow(2).mean().sqrt()
         prior_jacobian = torch.eye(g, n, dtype=self.mean.dtype, device=self.mean.device)
         prior_jacobian = (prior_jacobian.roll(c, -1) / prior_sd[:, None]).expand(b, 1, g, n)
+        shift_jacobian = torch.eye(3, n, dtype=self.mean.dtype, device=self.mean.device)
+        shift_jacobian = (shift_jacobian.roll(c + g, -1) / SHIFT_SD).expand(b, 1, 3, n)
 
         def evaluate(z: torch.Tensor, with_jacobian: bool) -> list[Residuals]:
             pose, scales = self.pose(z), z[:, self.scale_columns].exp()
@@ -264,6 +270,10 @@ class PoseProblem:
                 scale_prior = (z[:, self.scale_columns] / prior_sd)[:, None]
                 prior_weight = omega.proportions * prior_strength[:, None]
                 groups.append(Residuals(prior_weight, scale_prior, robust=False))
+                # where the 2D is noisy, the projection's position and depth held too
+                held = omega.proportions * (prior_strength[:, None] - 1)
+                shift_prior = (z[:, self.shift_columns] / SHIFT_SD)[:, None]
+                groups.append(Residuals(held, shift_prior, robust=False))
             if not with_jacobian:
                 return groups
             d_person = self.basis.permute(0, 2, 3, 1)  # (B, 14, 3, C)
@@ -281,6 +291,7 @@ class PoseProblem:
             groups[2].jacobian = F.pad(d_limbs, (0, n - c))[:, None]
             if g:
                 groups[3].jacobian = prior_jacobian
+                groups[4].jacobian = shift_jacobian
             return groups
 
         return evaluate
