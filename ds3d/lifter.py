@@ -105,8 +105,8 @@ class LiftResult:
     camera), root at the hip midpoint. bone_lengths: (B, 14) mm, ds3d.skeleton.BONE_NAMES order,
     the person's (LifterConfig.proportions) or the database's. joint_set: the chosen set per
     pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S), inf for a set
-    not scored (LifterConfig.partial_sets). projection:
-    (B, 6) M^ (ds3d.fit.camera). timings_ms: wall time of each stage for the whole batch."""
+    not scored (LifterConfig.partial_sets). projection: (B, 6) M^ (ds3d.fit.camera).
+    timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
     bone_lengths: torch.Tensor
@@ -238,10 +238,10 @@ class Lifter:
     def retrieve(self, joints_2d: torch.Tensor) -> torch.Tensor:
         """K neighbours per configured set, camera-oriented. joints_2d: (B, 14, 2) px.
         Returns (B, S, K, 14, 3) mm."""
-        ids = self.retriever.search(
-            joints_2d, self.config.neighbours, self.config.nprobe, self.config.joint_sets
-        )
-        return self.database.candidates(ids.to(self.device))
+        b, n_sets = len(joints_2d), len(self.set_ids)
+        row = torch.arange(b).repeat_interleave(n_sets)
+        set_index = torch.arange(n_sets).repeat(b)
+        return self._retrieve_problems(joints_2d, row, set_index).unflatten(0, (b, n_sets))
 
     def choose_set(self, kept, weights, kept_residuals, params, query: Query):
         """s^ by eq:energyS. kept: (B, S, K_w, 14, 3); weights, kept_residuals: (B, S, K_w);

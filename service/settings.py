@@ -25,7 +25,7 @@ class Settings(BaseSettings):
     # queue / throughput below request_timeout_s, or the overflow waits for a 504 instead of
     # getting a quick 503 (docs/RESULTS.md, service).
     max_wait_ms: float = Field(5.0, ge=0.0)
-    # /v1/pose: images (about 13 per second on two cores)
+    # /v1/pose: images (20-25 per second on two cores)
     max_batch_size: int = Field(16, ge=1, le=4096)
     max_queue: int = Field(64, ge=1)
     # /v1/lift: 2D poses (several hundred per second)

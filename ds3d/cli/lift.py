@@ -19,7 +19,7 @@ from ds3d.cli.parser import (
 from ds3d.skeleton import BONE_NAMES
 
 LIFTER_OVERRIDE = "override a LifterConfig field (ds3d.lifter), e.g. proportions=false or "
-LIFTER_OVERRIDE += "omega.proportions=20; repeatable"
+LIFTER_OVERRIDE += "omega.proportions=1; repeatable"
 
 
 def register(commands, evals, benches) -> None:

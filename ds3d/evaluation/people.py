@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ds3d.data.lsp import PoseAnnotations
+from ds3d.evaluation.metrics import pck
 from ds3d.image_io import read_image
 
 CANVAS = (640, 480)  # width, height px
@@ -164,8 +165,6 @@ def protocol(annotations: PoseAnnotations, count: int, seed: int = 0) -> list[Ca
 def score(canvases: list[Canvas], predictions: list[tuple[np.ndarray, np.ndarray]]) -> dict:
     """Recall and PCK@0.2 per size bin and overall, precision overall. predictions: per
     canvas, the predicted poses (N, 14, 2) px and their scores (N,), higher = surer."""
-    from ds3d.evaluation.metrics import pck
-
     rows = []  # (size fraction, matched?, predicted joints or None, true joints, located)
     false_positives = 0
     total_predictions = 0

@@ -90,13 +90,6 @@ class CameraFrame:
         k = None if self.intrinsics is None else self.intrinsics[rows]
         return CameraFrame(k, self.centre[rows], self.spread[rows])
 
-    def repeat(self, times: int) -> CameraFrame:
-        """Each problem `times` times in a row: leading dim B -> B * times."""
-        k = None if self.intrinsics is None else self.intrinsics.repeat_interleave(times, 0)
-        return CameraFrame(
-            k, self.centre.repeat_interleave(times, 0), self.spread.repeat_interleave(times, 0)
-        )
-
 
 def project(points: torch.Tensor, params: torch.Tensor, frame: CameraFrame) -> torch.Tensor:
     """points: (..., N, J, 3) mm; params: (..., 6); frame with leading dims (...).

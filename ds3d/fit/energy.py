@@ -54,10 +54,15 @@ def retrieval_energy(poses: torch.Tensor, neighbours: torch.Tensor, weights: tor
     return weighted_robust_distance(poses.flatten(-2), neighbours.flatten(-2), weights)
 
 
+def limb_vectors(poses: torch.Tensor) -> torch.Tensor:
+    """(..., 14, 3) mm -> (..., 13, 3) mm, child minus parent, in ds3d.skeleton.LIMBS order."""
+    child, parent = zip(*LIMBS, strict=True)
+    return poses[..., list(child), :] - poses[..., list(parent), :]
+
+
 def limb_lengths(poses: torch.Tensor) -> torch.Tensor:
     """(..., 14, 3) mm -> (..., 13) mm, in ds3d.skeleton.LIMBS order."""
-    child, parent = zip(*LIMBS, strict=True)
-    return (poses[..., list(child), :] - poses[..., list(parent), :]).norm(dim=-1)
+    return limb_vectors(poses).norm(dim=-1)
 
 
 def limb_energy(poses: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor):

@@ -26,9 +26,9 @@ from ds3d.fit.camera import (
     rotation_matrix,
     rotation_vector,
 )
-from ds3d.fit.energy import limb_lengths
+from ds3d.fit.energy import limb_lengths, limb_vectors
 from ds3d.fit.gauss_newton import Residuals
-from ds3d.skeleton import BONE_GROUPS, LIMBS, NUM_JOINTS
+from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS
 
 
 def joint_weights(mask: torch.Tensor) -> torch.Tensor:
@@ -42,7 +42,7 @@ def fit_projection(
     mask: torch.Tensor,
     frame: CameraFrame,
     start: torch.Tensor | None = None,
-    iterations: int = 5,
+    iterations: int = 1,
 ) -> torch.Tensor:
     """eq:projerr1 for P independent problems: the mean over the K neighbours of E_p.
 
@@ -116,17 +116,6 @@ class EnergyWeights:
     proportions: float = 0.25
 
 
-def _limb_matrix() -> torch.Tensor:
-    """(13, 14): limb vectors (child minus parent, ds3d.skeleton.LIMBS) from joints."""
-    matrix = torch.zeros(len(LIMBS), NUM_JOINTS)
-    for i, (child, parent) in enumerate(LIMBS):
-        matrix[i, child], matrix[i, parent] = 1.0, -1.0
-    return matrix
-
-
-LIMB_MATRIX = _limb_matrix()
-
-
 def fit_pose(
     neighbours: torch.Tensor,
     weights: torch.Tensor,
@@ -136,7 +125,7 @@ def fit_pose(
     frame: CameraFrame,
     omega: EnergyWeights = EnergyWeights(),
     components: int = 18,
-    iterations: int = 10,
+    iterations: int = 4,
     proportions: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """eq:energyMin2 for B problems, with the person's bone-group scales when `proportions`.
@@ -235,8 +224,7 @@ class PoseProblem:
         root_weight = joint_weights(mask).sqrt()[..., None, None]  # (B, 14, 1, 1)
         neighbour_vectors = self.neighbours.flatten(-2)
         neighbour_limbs = limb_lengths(self.neighbours)
-        limb_matrix = LIMB_MATRIX.to(self.mean)
-        limb_basis = limb_matrix @ self.basis  # (B, C, 13, 3): the limbs' change per coefficient
+        limb_basis = limb_vectors(self.basis)  # (B, C, 13, 3): the limbs' change per coefficient
         ones = self.mean.new_ones(b, 1)
         # Jacobians of the terms that only the pose moves: zero beyond its coefficients
         d_pose = F.pad(self.basis.flatten(2).transpose(1, 2), (0, n - c))[:, None]  # (B,1,42,n)
@@ -254,8 +242,8 @@ class PoseProblem:
             shift = self.projection(z, params)[:, 3:]
             out = project_rotated(rotate(person[:, None], rotation), shift, frame, with_jacobian)
             uv = (out[0] if with_jacobian else out)[:, 0]
-            limb_vectors = limb_matrix @ pose  # (B, 13, 3)
-            limbs = limb_vectors.norm(dim=-1)
+            limbs_3d = limb_vectors(pose)  # (B, 13, 3)
+            limbs = limbs_3d.norm(dim=-1)
             groups = [
                 Residuals(
                     omega.projection * ones,
@@ -286,7 +274,7 @@ class PoseProblem:
                 d_uv = torch.cat([d_uv, out[2][:, 0]], -1)
             groups[0].jacobian = (d_uv * root_weight).flatten(1, 2)[:, None]
             groups[1].jacobian = d_pose
-            unit = limb_vectors / limbs.clamp_min(1e-6)[..., None]  # (B, 13, 3)
+            unit = limbs_3d / limbs.clamp_min(1e-6)[..., None]  # (B, 13, 3)
             d_limbs = (unit[:, None] * limb_basis).sum(-1).transpose(1, 2)  # (B, 13, C)
             groups[2].jacobian = F.pad(d_limbs, (0, n - c))[:, None]
             if g:

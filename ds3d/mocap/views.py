@@ -48,5 +48,7 @@ def view_rotations(
 
 def rotate(poses: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
     """Apply rotations to poses. poses: (..., J, 3); rotations: (..., 3, 3) -> (..., J, 3)."""
-    # an elementwise product and sum: far faster than as many tiny (J, 3) @ (3, 3) products
-    return (poses[..., None, :] * rotations[..., None, :, :]).sum(-1)
+    # column by column: far faster than as many tiny (J, 3) @ (3, 3) products, and no larger
+    # intermediate than the result (the index build rotates a million poses at once)
+    r = rotations[..., None, :, :]  # (..., 1, 3, 3)
+    return poses[..., 0:1] * r[..., 0] + poses[..., 1:2] * r[..., 1] + poses[..., 2:3] * r[..., 2]
