@@ -1,5 +1,7 @@
 """ds3d.Pipeline: images in, 2D and 3D poses out, by the dual-source approach end to end.
 
+    search           without a box, where the people are (ds3d.image2d.search): each
+                     proposal's box then goes through every step below as its own crop
     2D stage         unaries + PSM on a 6-scale pyramid -> x (ds3d.image2d.estimator)
     per iteration t = 1..T (the query is x, then the refined x^ of the previous iteration):
       retrieval      K neighbours per joint set                         (ds3d.lifter)
@@ -24,15 +26,18 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from ds3d.boxes import person_boxes, suppress
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
 from ds3d.image2d.estimator import PoseEstimator2D
-from ds3d.image2d.result import LOG_EPS, Estimate2D
+from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
+from ds3d.image2d.search import Proposals, SearchParams, person_probability
 from ds3d.lifter import Lifter, LifterConfig, Query
 from ds3d.paths import MODELS_DIR
 from ds3d.refine import RefineParams, refine
@@ -40,6 +45,11 @@ from ds3d.skeleton import NUM_JOINTS
 from ds3d.timing import stage_timer
 
 STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
+PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or every one
+# Pipeline.estimate's default: people less likely than this are not answered. Chosen on LSP
+# train's held-out images (`ds3d eval people --split train --start 700`, by_min_score): the
+# most recall at a precision of at least 80 %.
+MIN_SCORE = 0.2
 
 
 @dataclass(frozen=True)
@@ -48,10 +58,11 @@ class PipelineConfig(RefineParams):
     refinement's (RefineParams), the number of iterations (the paper's 2; with the bundled 2D stage
     the second adds nothing measurable: docs/RESULTS.md) and how the joint set is chosen:
     "posterior" (eqt:best_segments_pose) or "energy" (eq:energyS; the refined pose is then the
-    chosen set's PSM MAP)."""
+    chosen set's PSM MAP). search: how people are found in images given without a box."""
 
     iterations: int = 1
     selection: str = "posterior"
+    search: SearchParams = field(default_factory=SearchParams)
 
     def __post_init__(self):
         if self.iterations < 1:
@@ -62,19 +73,27 @@ class PipelineConfig(RefineParams):
 
 @dataclass
 class PipelineResult:
-    """Poses of B images.
+    """Poses of N people, found in B images (one per image with people="best": N = B).
 
-    joints_2d: (B, 14, 2) float32 px of the input image, the refined 2D pose x^ (final).
-    joints_2d_initial: (B, 14, 2) float32 px, the 2D stage's pose x.
-    joints_2d_iterations: (B, T, 14, 2) float32 px, x^ after each iteration.
-    joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
+    image_index: (N,) int64, the image (of the B given) each person is in; people of one image
+        are together, best first.
+    box: (N, 4) float32 x0, y0, x1, y1 px, the box of the person's joints (ds3d.boxes).
+    score: (N,) float32 in [0, 1], the probability that it is a person
+        (ds3d.image2d.search.person_probability).
+    person_found: (N,) bool, the score at least min_score (with a box given: True, the caller
+        said where the person is). With people="best" an image where nobody scores min_score
+        still answers its likeliest pose, flagged False.
+    joints_2d: (N, 14, 2) float32 px of the input image, the refined 2D pose x^ (final).
+    joints_2d_initial: (N, 14, 2) float32 px, the 2D stage's pose x.
+    joints_2d_iterations: (N, T, 14, 2) float32 px, x^ after each iteration.
+    joints_3d: (N, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
         root at the hip midpoint.
-    confidence: (B, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
-    facing_camera: (B,) float32 in [0, 1], the 2D stage's probability that the person faces the
+    confidence: (N, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
+    facing_camera: (N,) float32 in [0, 1], the 2D stage's probability that the person faces the
         camera; below 0.5 its left and right were swapped (Estimate2D.facing_camera), so a
         value near 0.5 says the left/right labels are a guess.
-    joint_set: B names, the chosen set s^.
-    psm_energy: (B, T) float32, the negative MAP log-posterior of x^ after each iteration
+    joint_set: N names, the chosen set s^.
+    psm_energy: (N, T) float32, the negative MAP log-posterior of x^ after each iteration
         (non-increasing in t with selection "posterior", which keeps the better pose; with
         "energy" the last iteration's pose is kept).
     iterations: T, the number of iterations run.
@@ -91,10 +110,17 @@ class PipelineResult:
     psm_energy: torch.Tensor
     iterations: int
     timings_ms: dict[str, float]
+    image_index: torch.Tensor
+    box: torch.Tensor
+    score: torch.Tensor
+    person_found: torch.Tensor
 
     def item(self, i: int) -> dict:
-        """Image i's result as JSON-ready lists."""
+        """Person i's result as JSON-ready lists."""
         return {
+            "box": self.box[i].tolist(),
+            "score": float(self.score[i]),
+            "person_found": bool(self.person_found[i]),
             "joints_2d": self.joints_2d[i].tolist(),
             "joints_2d_initial": self.joints_2d_initial[i].tolist(),
             "joints_3d": self.joints_3d[i].tolist(),
@@ -104,6 +130,23 @@ class PipelineResult:
             "iterations": self.iterations,
             "psm_energy": self.psm_energy[i].tolist(),
         }
+
+    def rows(self, index: torch.Tensor) -> PipelineResult:
+        """The people `index` (K,) int64, in that order."""
+        fields = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, torch.Tensor):
+                fields[f.name] = value[index]
+            elif isinstance(value, list):
+                fields[f.name] = [value[i] for i in index.tolist()]
+            else:
+                fields[f.name] = value
+        return PipelineResult(**fields)
+
+    def people_of(self, image: int) -> PipelineResult:
+        """The people of image `image` (of those given), best first."""
+        return self.rows(torch.nonzero(self.image_index == image).view(-1))
 
 
 def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Tensor:
@@ -146,17 +189,94 @@ class Pipeline:
         return self.lifter.model_id
 
     def estimate(
-        self, images, bboxes=None, intrinsics=None, iterations: int | None = None
+        self,
+        images,
+        bboxes=None,
+        intrinsics=None,
+        iterations: int | None = None,
+        people: str = "best",
+        min_score: float = MIN_SCORE,
     ) -> PipelineResult:
-        """2D and 3D poses of B images.
+        """2D and 3D poses of the people in B images.
 
         images: B arrays (H_i, W_i, 3) uint8 RGB; bboxes: None or B entries, each None or a
-        person box (x0, y0, x1, y1) px; intrinsics: None (weak perspective) or (B, 3, 3) / (3, 3)
-        pinhole matrices; iterations: overrides config.iterations. Raises InvalidImage,
-        InvalidPose (bad intrinsics) or ValueError (bad boxes).
+        person box (x0, y0, x1, y1) px: an image with a box is estimated in it, one without is
+        searched for people (ds3d.image2d.search); intrinsics: None (weak perspective) or
+        (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations.
+        people: "best", one person per image (PipelineResult.person_found says whether anybody
+        scored min_score), or "all", every person scoring at least min_score (none for an image
+        without people). Raises InvalidImage, InvalidPose (bad intrinsics) or ValueError (bad
+        boxes, people or min_score).
         """
-        estimate = self.estimator.estimate(list(images), bboxes)
-        return self.lift_estimate(estimate, intrinsics, iterations)
+        if people not in PEOPLE:
+            raise ValueError(f"people must be one of {PEOPLE}, got {people!r}")
+        if not 0.0 <= min_score <= 1.0:
+            raise ValueError(f"min_score must lie in [0, 1], got {min_score}")
+        images = list(images)
+        if bboxes is not None and len(bboxes) != len(images):
+            raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
+        boxes = [None] * len(images) if bboxes is None else list(bboxes)
+        t_start = time.perf_counter()
+        # The crops: each given box, whose scale the 2D stage chooses, and each proposal's,
+        # whose scale the search has already found; and the whole image, a crop of its own:
+        # where a photo is a tight crop around its person it is the better one (held-out LSP
+        # train images, PCK@0.2 77.2 against 76.0 without it; docs/RESULTS.md).
+        searched = [i for i, box in enumerate(boxes) if box is None]
+        proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
+        crops = [(i, box, False) for i, box in enumerate(boxes) if box is not None]
+        for i, found in zip(searched, proposals, strict=True):
+            crops += [(i, box, True) for box in self._proposal_boxes(found)] + [(i, None, False)]
+        search_ms = 1000 * (time.perf_counter() - t_start)
+        owner_t = torch.tensor([i for i, _, _ in crops], dtype=torch.long)
+        if intrinsics is not None:
+            intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
+            intrinsics = intrinsics[owner_t] if intrinsics.ndim == 3 else intrinsics
+        parts = []
+        for at_scale in (False, True):
+            rows = [k for k, crop in enumerate(crops) if crop[2] == at_scale]
+            if rows:
+                part = self.estimator.estimate(
+                    [images[crops[k][0]] for k in rows],
+                    [crops[k][1] for k in rows],
+                    scales=[1.0] if at_scale else None,
+                )
+                parts.append((torch.tensor(rows), part))
+        estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(crops))
+        estimate.timings = {k: sum(part.timings.get(k, 0.0) for _, part in parts) for k in STEPS_2D}
+        result = self.lift_estimate(estimate, intrinsics, iterations)
+        result.image_index = owner_t
+        given = torch.tensor([boxes[i] is not None for i, _, _ in crops])
+        result.person_found = given | (result.score >= min_score)
+        result.timings_ms = {"search": round(search_ms, 3), **result.timings_ms}
+        result.timings_ms["total"] = round(1000 * (time.perf_counter() - t_start), 3)
+        return result.rows(self._answered(result, people))
+
+    def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
+        """The boxes of an image's proposals that go on to the 2D stage (the box of the
+        proposal's joints, so that the crop's base scale is the proposal's): at most
+        max_people, those scoring proposal_floor, and always the best."""
+        search = self.config.search
+        keep = (proposals.scores >= search.proposal_floor)[: search.max_people]
+        keep[:1] = True
+        poses = proposals.poses[: len(keep)][keep]
+        return list(np.concatenate([poses.min(1), poses.max(1)], 1))
+
+    def _answered(self, result: PipelineResult, people: str) -> torch.Tensor:
+        """Of every crop's result, the rows answered: per image, after non-maximum suppression
+        of their boxes by score, the best one ("best") or those found ("all")."""
+        rows = []
+        for image in result.image_index.unique().tolist():
+            own = torch.nonzero(result.image_index == image).view(-1)
+            kept = own[
+                suppress(
+                    result.box[own].numpy(), result.score[own].numpy(), self.config.search.overlap
+                )
+            ]
+            if people == "best":
+                rows.append(kept[:1])
+            else:
+                rows.append(kept[result.person_found[kept]])
+        return torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
 
     @torch.inference_mode()
     def lift_estimate(
@@ -193,8 +313,10 @@ class Pipeline:
         probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
         timings["total"] = 1000 * elapsed
+        joints_2d = x.cpu()
+        score = person_probability(estimate.score.float().cpu(), self.config.search)
         return PipelineResult(
-            joints_2d=x.cpu(),
+            joints_2d=joints_2d,
             joints_2d_initial=first.joints_2d.cpu(),
             joints_2d_iterations=torch.stack(history, 1).cpu(),
             joints_3d=pose.detach().cpu(),
@@ -204,6 +326,10 @@ class Pipeline:
             psm_energy=torch.stack(energies, 1).cpu(),
             iterations=cfg.iterations,
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
+            image_index=torch.arange(len(joints_2d)),
+            box=torch.from_numpy(person_boxes(joints_2d.numpy())).float(),
+            score=score,
+            person_found=torch.ones(len(joints_2d), dtype=torch.bool),
         )
 
     def _iterate(

@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ds3d.skeleton import HEAD_TOP, JOINT_NAMES, LIMBS, NECK
+from ds3d.skeleton import HEAD_TOP, JOINT_NAMES, LIMBS, NECK, NUM_JOINTS
 
 RIGHT, LEFT, CENTRE = "tab:red", "tab:blue", "tab:green"
 
@@ -26,29 +26,36 @@ def limb_colour(child: int) -> str:
 
 
 def draw_2d(ax, image: np.ndarray, joints_2d: np.ndarray, initial: np.ndarray | None = None):
-    """image: (H, W, 3) uint8; joints_2d: (14, 2) px; initial: optional (14, 2) px, drawn thin
-    and grey under the refined pose."""
+    """image: (H, W, 3) uint8; joints_2d: (14, 2) or (P, 14, 2) px, one skeleton per person;
+    initial: optional (14, 2) px, drawn thin and grey under a single refined pose."""
     ax.imshow(image)
     if initial is not None:
         for child, parent in LIMBS:
             pts = initial[[child, parent]]
             ax.plot(pts[:, 0], pts[:, 1], color="0.85", lw=1, ls="--")
-    for child, parent in LIMBS:
-        pts = joints_2d[[child, parent]]
-        ax.plot(pts[:, 0], pts[:, 1], color=limb_colour(child), lw=2.5)
-    ax.scatter(joints_2d[:, 0], joints_2d[:, 1], s=8, c="white", zorder=3)
+    for person in np.asarray(joints_2d).reshape(-1, NUM_JOINTS, 2):
+        for child, parent in LIMBS:
+            pts = person[[child, parent]]
+            ax.plot(pts[:, 0], pts[:, 1], color=limb_colour(child), lw=2.5)
+        ax.scatter(person[:, 0], person[:, 1], s=8, c="white", zorder=3)
     ax.set_xlim(-0.5, image.shape[1] - 0.5)
     ax.set_ylim(image.shape[0] - 0.5, -0.5)
     ax.axis("off")
 
 
 def draw_3d(ax, joints_3d: np.ndarray, azimuth: float, title: str):
-    """joints_3d: (14, 3) mm, camera-oriented (x right, y down, z away from the camera); drawn
-    with the up axis up, seen from `azimuth` degrees around it (-90: the camera's view)."""
-    x, depth, up = joints_3d[:, 0], joints_3d[:, 2], -joints_3d[:, 1]
-    for child, parent in LIMBS:
-        idx = [child, parent]
-        ax.plot(x[idx], depth[idx], up[idx], color=limb_colour(child), lw=2.5)
+    """joints_3d: (14, 3) or (P, 14, 3) mm, camera-oriented (x right, y down, z away from the
+    camera), each root-centred (several people stand side by side, a metre apart); drawn with
+    the up axis up, seen from `azimuth` degrees around it (-90: the camera's view)."""
+    people = np.asarray(joints_3d).reshape(-1, NUM_JOINTS, 3)
+    people = people + np.arange(len(people))[:, None, None] * np.array([1000.0, 0.0, 0.0])
+    everyone = people.reshape(-1, 3) if len(people) else np.zeros((1, 3))
+    for person in people:
+        x, depth, up = person[:, 0], person[:, 2], -person[:, 1]
+        for child, parent in LIMBS:
+            idx = [child, parent]
+            ax.plot(x[idx], depth[idx], up[idx], color=limb_colour(child), lw=2.5)
+    x, depth, up = everyone[:, 0], everyone[:, 2], -everyone[:, 1]
     centre = np.array([x.mean(), depth.mean(), up.mean()])
     radius = max(np.ptp(x), np.ptp(depth), np.ptp(up), 1.0) / 2
     for axis, c in zip("xyz", centre, strict=True):
@@ -69,8 +76,8 @@ def render(
     initial_2d: np.ndarray | None = None,
     caption: str = "",
 ) -> None:
-    """Write a PNG: the image with the 2D pose (px, (14, 2)) and the 3D pose (mm, (14, 3),
-    camera-oriented) seen from the camera and from the side."""
+    """Write a PNG: the image with the 2D poses (px, (14, 2) or (P, 14, 2)) and the 3D poses
+    (mm, (14, 3) or (P, 14, 3), camera-oriented) seen from the camera and from the side."""
     fig = Figure(figsize=(9, 3.4), dpi=100)
     FigureCanvasAgg(fig)
     draw_2d(fig.add_subplot(1, 3, 1), image, np.asarray(joints_2d), initial_2d)

@@ -55,7 +55,8 @@ class LiftResult:
 
 @dataclass(frozen=True)
 class PoseResult:
-    """2D and 3D pose of the person in one image."""
+    """2D and 3D pose of one person in an image: the best one (estimate), or one of every
+    person found (find_people)."""
 
     joints_2d: np.ndarray  # (14, 2) float32, pixels of the image sent
     joints_3d: np.ndarray  # (14, 3) float32, millimetres
@@ -65,6 +66,9 @@ class PoseResult:
     joint_names: list[str]
     model: str
     timings_ms: dict[str, float] = field(default_factory=dict)
+    box: np.ndarray | None = None  # (4,) float32 x0, y0, x1, y1 pixels, the joints' box
+    score: float | None = None  # probability in [0, 1] that it is a person
+    person_found: bool = True  # estimate(): false when nobody scored min_score
 
 
 @dataclass(frozen=True)
@@ -151,8 +155,18 @@ class _Protocol:
             items.append(item)
         return _Request("POST", "/v1/lift", {"json": {"items": items}})
 
-    def pose_request(self, image: ImageLike, bbox=None, intrinsics=None) -> _Request:
+    def pose_request(
+        self,
+        image: ImageLike,
+        bbox=None,
+        intrinsics=None,
+        people: str = "best",
+        min_score: float | None = None,
+    ) -> _Request:
         data, ctype = _image_bytes(image)
+        query: dict = {"people": people}
+        if min_score is not None:
+            query["min_score"] = float(min_score)
         form = {}
         if bbox is not None:
             form["bbox"] = str(np.asarray(bbox, dtype=np.float64).reshape(4).tolist())
@@ -160,9 +174,8 @@ class _Protocol:
             form["intrinsics"] = str(
                 np.asarray(intrinsics, dtype=np.float64).reshape(3, 3).tolist()
             )
-        return _Request(
-            "POST", "/v1/pose", {"files": {"image": ("image", data, ctype)}, "data": form}
-        )
+        files = {"image": ("image", data, ctype)}
+        return _Request("POST", "/v1/pose", {"files": files, "data": form, "params": query})
 
     @staticmethod
     def raise_for_error(resp: httpx.Response) -> None:
@@ -193,16 +206,12 @@ class _Protocol:
     def parse_pose(self, resp: httpx.Response) -> PoseResult:
         self.raise_for_error(resp)
         body = resp.json()
-        return PoseResult(
-            joints_2d=np.asarray(body["joints_2d"], dtype=np.float32),
-            joints_3d=np.asarray(body["joints_3d"], dtype=np.float32),
-            confidence=np.asarray(body["confidence"], dtype=np.float32),
-            facing_camera=float(body["facing_camera"]),
-            joint_set=body["joint_set"],
-            joint_names=list(body["joint_names"]),
-            model=body["model"],
-            timings_ms=dict(body.get("timings_ms", {})),
-        )
+        return _person(body, body, bool(body.get("person_found", True)))
+
+    def parse_people(self, resp: httpx.Response) -> list[PoseResult]:
+        self.raise_for_error(resp)
+        body = resp.json()
+        return [_person(person, body, True) for person in body["people"]]
 
     def retry_delay(self, attempt: int, resp: httpx.Response | None) -> float | None:
         """Seconds to wait before retry number attempt + 1, or None to stop: retry a 503 or a
@@ -212,6 +221,23 @@ class _Protocol:
         backoff = min(self.max_backoff_s, self.backoff_s * 2**attempt) * random.uniform(0.5, 1.0)
         hinted = _retry_after(resp) if resp is not None else None
         return min(self.max_backoff_s, hinted) if hinted is not None else backoff
+
+
+def _person(person: dict, body: dict, found: bool) -> PoseResult:
+    """One person of a /v1/pose answer (`body`: its shared fields)."""
+    return PoseResult(
+        joints_2d=np.asarray(person["joints_2d"], dtype=np.float32),
+        joints_3d=np.asarray(person["joints_3d"], dtype=np.float32),
+        confidence=np.asarray(person["confidence"], dtype=np.float32),
+        facing_camera=float(person["facing_camera"]),
+        joint_set=person["joint_set"],
+        joint_names=list(body["joint_names"]),
+        model=body["model"],
+        timings_ms=dict(body.get("timings_ms", {})),
+        box=np.asarray(person["box"], dtype=np.float32) if "box" in person else None,
+        score=float(person["score"]) if "score" in person else None,
+        person_found=found,
+    )
 
 
 class PoseClient:
@@ -256,6 +282,14 @@ class PoseClient:
         """image: a path, image file bytes, or an (H, W, 3) uint8 RGB array; bbox (4,) x0, y0,
         x1, y1 pixels; intrinsics (3, 3)."""
         return self._send(self._proto.pose_request(image, bbox, intrinsics), self._proto.parse_pose)
+
+    def find_people(
+        self, image: ImageLike, intrinsics=None, min_score: float | None = None
+    ) -> list[PoseResult]:
+        """Every person in the image scoring at least min_score (default: the server's),
+        best first; [] when nobody does."""
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score)
+        return self._send(req, self._proto.parse_people)
 
     def estimate_many(self, images: Iterable[ImageLike], concurrency: int = 8) -> list[PoseResult]:
         """estimate() of each image, `concurrency` requests in flight; results in order."""
@@ -314,6 +348,12 @@ class AsyncPoseClient:
     async def estimate(self, image: ImageLike, bbox=None, intrinsics=None) -> PoseResult:
         req = self._proto.pose_request(image, bbox, intrinsics)
         return await self._send(req, self._proto.parse_pose)
+
+    async def find_people(
+        self, image: ImageLike, intrinsics=None, min_score: float | None = None
+    ) -> list[PoseResult]:
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score)
+        return await self._send(req, self._proto.parse_people)
 
     async def estimate_many(
         self, images: Sequence[ImageLike], concurrency: int = 8

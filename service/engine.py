@@ -18,7 +18,7 @@ import torch
 
 from ds3d.errors import DataFormatError
 from ds3d.lifter import Lifter
-from ds3d.pipeline import Pipeline
+from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,8 @@ class PoseInput:
     image: np.ndarray  # (H, W, 3) uint8
     bbox: np.ndarray | None  # (4,) float32 x0, y0, x1, y1 pixels
     intrinsics: np.ndarray | None  # (3, 3) float32
+    people: str = "best"  # ds3d.pipeline.PEOPLE
+    min_score: float = MIN_SCORE
 
 
 @dataclass(frozen=True)
@@ -55,12 +57,20 @@ class LiftOutput:
 
 
 @dataclass(frozen=True)
-class PoseOutput:
+class Person:
+    box: np.ndarray  # (4,) float32 x0, y0, x1, y1 pixels, the box of its joints
+    score: float  # P(a person), ds3d.image2d.search.person_probability
+    person_found: bool  # score >= min_score, or a box was given
     joints_2d: np.ndarray  # (14, 2) float32, pixels
     joints_3d: np.ndarray  # (14, 3) float32, mm
     confidence: np.ndarray  # (14,) float32 in [0, 1]
     facing_camera: float  # P(faces the camera); below 0.5 left and right were swapped
     joint_set: str
+
+
+@dataclass(frozen=True)
+class PoseOutput:
+    people: list[Person]  # best first; exactly one with people="best"
     batch: BatchInfo
 
 
@@ -146,7 +156,8 @@ class Engine:
 
     def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:
         """2D and 3D poses of B images (needs the pipeline; a box may be None per image, the
-        intrinsics are given for a whole call or not at all)."""
+        intrinsics are given for a whole call or not at all). The pipeline answers every
+        person it finds; each item then takes its own (people, min_score)."""
         if self.pipeline is None:
             raise RuntimeError(self.pose_unavailable)
         out: list[PoseOutput | None] = [None] * len(items)
@@ -156,10 +167,31 @@ class Engine:
                 [items[i].image for i in idx],
                 bboxes=None if all(b is None for b in boxes) else boxes,
                 intrinsics=np.stack([items[i].intrinsics for i in idx]) if has_k else None,
+                people="all",
+                min_score=0.0,
             )
             info = self._batch_info(len(idx), res.timings_ms)
-            j2, j3, conf = _numpy(res.joints_2d), _numpy(res.joints_3d), _numpy(res.confidence)
-            facing = _numpy(res.facing_camera)
             for j, i in enumerate(idx):
-                out[i] = PoseOutput(j2[j], j3[j], conf[j], float(facing[j]), res.joint_set[j], info)
+                out[i] = PoseOutput(_people(res.people_of(j), items[i]), info)
         return out  # type: ignore[return-value]
+
+
+def _people(found: PipelineResult, item: PoseInput) -> list[Person]:
+    """An image's people, best first (every candidate the pipeline kept), as the item asks:
+    the best one, flagged whether it scores min_score (or had a box), or all that score it."""
+    scores = _numpy(found.score)
+    given = item.bbox is not None
+    people = [
+        Person(
+            _numpy(found.box[k]),
+            float(scores[k]),
+            given or bool(scores[k] >= item.min_score),
+            _numpy(found.joints_2d[k]),
+            _numpy(found.joints_3d[k]),
+            _numpy(found.confidence[k]),
+            float(found.facing_camera[k]),
+            found.joint_set[k],
+        )
+        for k in range(len(scores))
+    ]
+    return people[:1] if item.people == "best" else [p for p in people if p.person_found]

@@ -58,8 +58,9 @@ class LiftResponse(BaseModel):
     )
 
 
-class PoseResponse(BaseModel):
-    joint_names: list[str]
+class Person(BaseModel):
+    box: list[float] = Field(description="[x0, y0, x1, y1] pixels, the box of the joints")
+    score: float = Field(description="probability in [0, 1] that this is a person")
     joints_2d: list[Point2] = Field(description="14 joints as [x, y] pixels of the input image")
     joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
     confidence: list[float] = Field(description="per-joint confidence in [0, 1]")
@@ -68,6 +69,25 @@ class PoseResponse(BaseModel):
         " person's own, and below 0.5 they were swapped: near 0.5 they are a guess"
     )
     joint_set: str
+
+
+class PoseResponse(Person):
+    """The best person (without people=all): today's shape, with its box and score."""
+
+    person_found: bool = Field(
+        description="false when nobody in the image scored min_score: the pose is then the"
+        " likeliest candidate's, and probably not a person's (true when a bbox was given)"
+    )
+    joint_names: list[str]
+    model: str
+    timings_ms: dict[str, float]
+
+
+class PeopleResponse(BaseModel):
+    """Every person found (people=all), best first; none for an image without people."""
+
+    people: list[Person]
+    joint_names: list[str]
     model: str
     timings_ms: dict[str, float]
 

@@ -178,8 +178,12 @@ def test_bundled_model_refinement_does_not_make_2d_notably_worse(data_dir):
 
     ann = load_lsp(split="test").subset(range(32))
     pipeline = Pipeline.load()
+    # the whole image as the crop, as `ds3d eval lsp-pipeline` runs it (no search)
     results = [
-        pipeline.estimate([read_image(p) for p in ann.image_paths[i : i + 16]]) for i in (0, 16)
+        pipeline.lift_estimate(
+            pipeline.estimator.estimate([read_image(p) for p in ann.image_paths[i : i + 16]])
+        )
+        for i in (0, 16)
     ]
     gt = torch.from_numpy(ann.joints)
     initial = torch.cat([r.joints_2d_initial for r in results])

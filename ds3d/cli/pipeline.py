@@ -23,6 +23,13 @@ def register(commands, evals, benches) -> None:
         help="person box x,y,w,h in px; give it once per image, in order (default: whole image)",
     )
     p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
+    p.add_argument(
+        "--people",
+        choices=("best", "all"),
+        default="best",
+        help="best: the likeliest person per image; all: every person found (one render)",
+    )
+    p.add_argument("--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE")
     p.add_argument("--out", type=Path, required=True, help="result JSON")
     p.add_argument("--render", type=Path, help="PNG; with several images, PATH-<i>.png for image i")
     add_model_options(p)
@@ -60,6 +67,12 @@ def register(commands, evals, benches) -> None:
         "people", help="people of any size in 640x480 canvases built from LSP: detection and PCK"
     )
     p.add_argument("--split", choices=("test", "train"), default="test", help="LSP's people")
+    p.add_argument(
+        "--start",
+        type=int,
+        default=0,
+        help="skip the split's first n images (train: 700 = held out)",
+    )
     p.add_argument("--count", type=int, default=200, help="canvases")
     p.add_argument("--seed", type=int, default=0, help="draws the canvases")
     p.add_argument("--batch", type=int, default=8)
@@ -95,13 +108,30 @@ def predict(args) -> int:
     pipeline = load_pipeline(args)
     images = [read_image(path) for path in args.images]
     boxes = None if args.bbox is None else [corner_box(b) for b in args.bbox]
-    result = pipeline.estimate(images, bboxes=boxes, iterations=args.iterations)
+    from ds3d.pipeline import MIN_SCORE
+
+    result = pipeline.estimate(
+        images,
+        bboxes=boxes,
+        iterations=args.iterations,
+        people=args.people,
+        min_score=MIN_SCORE if args.min_score is None else args.min_score,
+    )
+    items = []
+    for i, path in enumerate(args.images):
+        found = result.people_of(i)
+        people = [found.item(k) for k in range(len(found.score))]
+        items.append(
+            {"image": str(path), "people": people}
+            if args.people == "all"
+            else {"image": str(path), **people[0]}
+        )
     report = {
         "model": pipeline.model_id,
         "joint_names": list(JOINT_NAMES),
         "units": {"joints_2d": "px", "joints_3d": "mm, camera-oriented, root at the hips"},
         "timings_ms": result.timings_ms,
-        "items": [{"image": str(path), **result.item(i)} for i, path in enumerate(args.images)],
+        "items": items,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1) + "\n")
@@ -112,13 +142,17 @@ def predict(args) -> int:
             path = args.render
             if len(images) > 1:
                 path = path.with_name(f"{path.stem}-{i}{path.suffix or '.png'}")
+            found = result.people_of(i)
+            single = args.people == "best"
             render(
                 path,
                 image,
-                result.joints_2d[i].numpy(),
-                result.joints_3d[i].numpy(),
-                result.joints_2d_initial[i].numpy(),
-                caption=f"{args.images[i].name}: joint set {result.joint_set[i]}",
+                found.joints_2d.numpy(),
+                found.joints_3d.numpy(),
+                found.joints_2d_initial[0].numpy() if single else None,
+                caption=f"{args.images[i].name}: {len(found.score)} people"
+                if not single
+                else f"{args.images[i].name}: joint set {found.joint_set[0]}",
             )
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
@@ -190,34 +224,51 @@ def eval_lsp_pipeline(args) -> int:
 
 
 def eval_people(args) -> int:
-    """ds3d.evaluation.people's protocol with the pipeline run on whole canvases, no box."""
+    """ds3d.evaluation.people's protocol with the pipeline run on whole canvases, no box: every
+    person found is scored, the protocol's figures taken at the default min_score."""
     import time
 
     import cv2
 
     from ds3d.data.lsp import load_lsp
-    from ds3d.evaluation.people import protocol, score
+    from ds3d.evaluation.people import calibration, protocol, score
+    from ds3d.pipeline import MIN_SCORE
 
     pipeline = load_pipeline(args)
-    canvases = protocol(load_lsp(split=args.split), args.count, args.seed)
+    annotations = load_lsp(split=args.split)
+    annotations = annotations.subset(range(args.start, len(annotations.image_paths)))
+    canvases = protocol(annotations, args.count, args.seed)
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
         for i, canvas in enumerate(canvases):
             cv2.imwrite(str(args.save / f"{i:04d}.png"), canvas.image[..., ::-1])
-    predictions = []
+    candidates = []  # per canvas: every person answered at min_score 0, (poses, scores)
     start = time.perf_counter()
     for first in range(0, len(canvases), args.batch):
         part = canvases[first : first + args.batch]
-        result = pipeline.estimate([c.image for c in part])
-        predictions += [(pose[None], np.ones(1)) for pose in result.joints_2d.numpy()]
+        result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
+        for i in range(len(part)):
+            own = result.people_of(i)
+            candidates.append((own.joints_2d.numpy(), own.score.numpy()))
     seconds = time.perf_counter() - start
+    answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s in candidates]
     report = {
         "split": args.split,
+        "start": args.start,
         "seed": args.seed,
         "threads": args.threads,
-        "people_per_image": "the best person (the pipeline finds one per image)",
+        "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
-        **score(canvases, predictions),
+        **score(canvases, answered),
+        "calibration": calibration(canvases, candidates, pipeline.config.search),
+        "by_min_score": {},
     }
+    for threshold in (0.1, 0.2, 0.3, 0.5, 0.7):
+        kept = [(poses[s >= threshold], s[s >= threshold]) for poses, s in candidates]
+        figures = score(canvases, kept)
+        report["by_min_score"][str(threshold)] = {
+            "recall": {name: round(b["recall"], 4) for name, b in figures["bins"].items()},
+            "precision": round(figures["all"]["precision"], 4),
+        }
     write_report(report, args.out)
     return 0

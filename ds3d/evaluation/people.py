@@ -7,9 +7,8 @@ its border replicated, also fills the rest of the canvas, so the background is i
 without people. Everything is drawn from one seed: the same seed gives the same canvases.
 
 Scores, per person size (the person's height as a fraction of the canvas height): detection
-recall and precision at IoU >= 0.5 between person boxes (the box of the annotated joints, widened
-by BOX_MARGIN on every side, for the truth and the prediction alike), and PCK@0.2 of the people
-found (ds3d.evaluation.metrics.pck).
+recall and precision at IoU >= 0.5 between person boxes (ds3d.boxes.person_boxes, for the truth
+and the prediction alike), and PCK@0.2 of the people found (ds3d.evaluation.metrics.pck).
 """
 
 from __future__ import annotations
@@ -19,13 +18,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import PoseAnnotations
 from ds3d.evaluation.metrics import pck
 from ds3d.image_io import read_image
 
 CANVAS = (640, 480)  # width, height px
 SIZE_BINS = ((0.15, 0.25), (0.25, 0.5), (0.5, 1.0))  # person height / canvas height
-BOX_MARGIN = 0.1  # of the joints' extent, on every side
 
 
 @dataclass(frozen=True)
@@ -43,27 +42,6 @@ class Canvas:
     def boxes(self) -> np.ndarray:
         """(P, 4) x0, y0, x1, y1 px: each person's box (person_boxes)."""
         return person_boxes(self.joints, self.located)
-
-
-def person_boxes(joints: np.ndarray, located: np.ndarray | None = None) -> np.ndarray:
-    """(P, 14, 2) px (and (P, 14) bool, the joints to use) -> (P, 4) x0, y0, x1, y1 px: the
-    joints' bounding box widened by BOX_MARGIN of its extent on every side."""
-    joints = np.asarray(joints, dtype=np.float64)
-    mask = np.ones(joints.shape[:2], bool) if located is None else np.asarray(located, bool)
-    low = np.where(mask[..., None], joints, np.inf).min(1)
-    high = np.where(mask[..., None], joints, -np.inf).max(1)
-    pad = BOX_MARGIN * (high - low)
-    return np.concatenate([low - pad, high + pad], 1)
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Intersection over union of boxes a (N, 4) and b (M, 4) -> (N, M)."""
-    top_left = np.maximum(a[:, None, :2], b[None, :, :2])
-    bottom_right = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.clip(bottom_right - top_left, 0, None).prod(-1)
-    area_a = (a[:, 2:] - a[:, :2]).prod(-1)
-    area_b = (b[:, 2:] - b[:, :2]).prod(-1)
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
 def match(predicted: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = 0.5):
@@ -201,3 +179,36 @@ def score(canvases: list[Canvas], predictions: list[tuple[np.ndarray, np.ndarray
     report["all"] = summary(rows)
     report["all"]["precision"] = (total_predictions - false_positives) / max(total_predictions, 1)
     return report
+
+
+def calibration(canvases: list[Canvas], candidates, search) -> dict:
+    """The person_probability (ds3d.image2d.search) that these candidates fit: a logistic
+    regression of "matches a person" (match) on their PSM scores, recovered from the scores
+    (probabilities under `search`'s score_center and score_width). candidates: per canvas,
+    every pose answered at min_score 0, (poses (N, 14, 2) px, scores (N,)). Returns the fitted
+    score_center and score_width; tune them on training canvases only."""
+    psm, matched = [], []
+    for canvas, (poses, scores) in zip(canvases, candidates, strict=True):
+        scores = np.clip(np.asarray(scores, np.float64), 1e-12, 1 - 1e-12)
+        found = match(person_boxes(poses), scores, canvas.boxes()) if len(poses) else []
+        label = np.zeros(len(poses))
+        label[[p for p in found if p >= 0]] = 1
+        psm.append(search.score_center + search.score_width * np.log(scores / (1 - scores)))
+        matched.append(label)
+    x, y = np.concatenate(psm), np.concatenate(matched)
+    # Newton's method on (a, b) of sigmoid(a (x - mean) / sd + b): a two-parameter convex fit
+    z = (x - x.mean()) / max(x.std(), 1e-9)
+    a, b = 1.0, 0.0
+    for _ in range(50):
+        p = 1 / (1 + np.exp(-(a * z + b)))
+        gradient = np.array([((p - y) * z).sum(), (p - y).sum()])
+        w = p * (1 - p) + 1e-9
+        hessian = np.array([[(w * z * z).sum(), (w * z).sum()], [(w * z).sum(), w.sum()]])
+        a, b = np.array([a, b]) - np.linalg.solve(hessian + 1e-6 * np.eye(2), gradient)
+    width = x.std() / a
+    return {
+        "candidates": len(x),
+        "people": int(y.sum()),
+        "score_center": round(float(x.mean() - b * width), 2),
+        "score_width": round(float(width), 2),
+    }

@@ -49,6 +49,7 @@ from ds3d.image2d.model_files import load_model
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
+from ds3d.image2d.search import Proposals, SearchParams, propose
 from ds3d.paths import MODELS_DIR
 from ds3d.threads import map_on_threads, split_rows
 
@@ -133,6 +134,34 @@ class PoseEstimator2D:
         best = person_centric(best)
         best.timings = {**timings, "total": round(time.perf_counter() - t_start, 6)}
         return best
+
+    def propose(
+        self, images: list[np.ndarray], search: SearchParams | None = None
+    ) -> list[Proposals]:
+        """Where the people are in B whole images (H_i, W_i, 3) uint8 RGB: ds3d.image2d.search,
+        the images split over torch.get_num_threads() threads as in estimate(). Raises
+        InvalidImage for a malformed image, DataFormatError without a joint network."""
+        if self.jointnet is None:
+            raise DataFormatError("the search for people needs the joint network")
+        working_crops(images, None, self.params)  # checks the images
+        if not images:
+            return []
+        p, search = self.params, search or SearchParams()
+
+        def run(rows: torch.Tensor) -> list[Proposals]:
+            return [
+                propose(
+                    self.jointnet,
+                    self.mixtures,
+                    images[i],
+                    p.canonical_extent,
+                    p.unary_weight,
+                    search,
+                )
+                for i in rows.tolist()
+            ]
+
+        return [found for part in map_on_threads(run, split_rows(len(images))) for found in part]
 
     def _estimate_crops(self, crops: list[Crop], scales: list[float]) -> Estimate2D:
         """estimate() of crops on the calling thread, before the left/right decision; sets

@@ -325,51 +325,94 @@ def infer(
     root's best cell. Returns PsmResult (joints in pixels, their cells, the MAP log-posterior and
     the unary at each joint's MAP cell).
     """
-    if unaries.ndim != 4 or unaries.shape[1] != NUM_JOINTS or unaries.numel() == 0:
-        raise ValueError(f"unaries must be (B, {NUM_JOINTS}, H, W), got {tuple(unaries.shape)}")
-    if bool(torch.isnan(unaries).any()):
-        raise ValueError("unaries contain NaN")
-    b, _, height, width = unaries.shape
-    if mixtures.batch_size not in (1, b):
-        raise ValueError(f"mixtures have batch {mixtures.batch_size}, unaries {b}")
-    dtype = unaries.dtype if unaries.is_floating_point() else torch.float32
-    scale = torch.as_tensor(stride, dtype=dtype, device=unaries.device)
-    if scale.ndim == 1 and scale.shape != (b,):
-        raise ValueError(f"stride must be a float or ({b},), got {tuple(scale.shape)}")
-    scale = scale.reshape(-1, 1, 1, 1)
-    mean = mixtures.mean.to(unaries.device, dtype) / scale  # (1|B, 13, C, 2) cells
-    var = mixtures.var.to(unaries.device, dtype) / (scale * scale)
-    log_gamma = mixtures.log_gamma.to(unaries.device, dtype)
-    if log_gamma.shape[0] != mean.shape[0]:
-        log_gamma = log_gamma.expand(mean.shape[0], -1, -1)
+    messages = RootScores(unaries, mixtures, stride, chunk_elements=chunk_elements)
+    root = messages.root  # (B, H, W)
+    score, flat = root.flatten(1).max(dim=1)
+    width = root.shape[-1]
+    result = messages.poses(torch.stack((flat % width, flat // width), -1)[:, None])
+    return PsmResult(result.joints_2d[:, 0], result.cells[:, 0], score, result.joint_scores[:, 0])
 
-    beliefs = unaries.to(dtype).clone()  # unary + messages from the children, per joint
 
-    def per_map(t: Tensor, level: tuple[int, ...]) -> Tensor:
-        """(1|B, 13, ...) mixture parameters -> (B * len(level), ...) for a level's maps."""
-        t = t[:, [_LIMB_OF_CHILD[child] for child in level]]
-        return t.expand(b, *t.shape[1:]).reshape(b * len(level), *t.shape[2:])
+class RootScores:
+    """The upward pass of `infer` (arguments as there): `root` (B, H, W), each cell's score of
+    the best pose with its root (the neck) there, unary + best children, in the unaries' dtype.
+    As a map over positions (and, across a pyramid, scales) it is a detector of people: each
+    local maximum is one (the articulated-pose detectors of the PSM literature). `poses` back-
+    tracks the best pose below any root cells."""
 
-    def maps(level: tuple[int, ...]) -> Tensor:
-        return beliefs[:, list(level)].reshape(b * len(level), height, width)
+    def __init__(
+        self,
+        unaries: Tensor,
+        mixtures: PairwiseMixtures,
+        stride: float | Tensor = 1.0,
+        *,
+        chunk_elements: int = CHUNK_ELEMENTS,
+    ):
+        if unaries.ndim != 4 or unaries.shape[1] != NUM_JOINTS or unaries.numel() == 0:
+            raise ValueError(f"unaries must be (B, {NUM_JOINTS}, H, W), got {tuple(unaries.shape)}")
+        if bool(torch.isnan(unaries).any()):
+            raise ValueError("unaries contain NaN")
+        b = unaries.shape[0]
+        if mixtures.batch_size not in (1, b):
+            raise ValueError(f"mixtures have batch {mixtures.batch_size}, unaries {b}")
+        dtype = unaries.dtype if unaries.is_floating_point() else torch.float32
+        scale = torch.as_tensor(stride, dtype=dtype, device=unaries.device)
+        if scale.ndim == 1 and scale.shape != (b,):
+            raise ValueError(f"stride must be a float or ({b},), got {tuple(scale.shape)}")
+        self.scale = scale = scale.reshape(-1, 1, 1, 1)
+        mean = mixtures.mean.to(unaries.device, dtype) / scale  # (1|B, 13, C, 2) cells
+        var = mixtures.var.to(unaries.device, dtype) / (scale * scale)
+        log_gamma = mixtures.log_gamma.to(unaries.device, dtype)
+        if log_gamma.shape[0] != mean.shape[0]:
+            log_gamma = log_gamma.expand(mean.shape[0], -1, -1)
+        self.unaries = unaries.to(dtype)
+        # unary + messages from the children, per joint
+        self.beliefs = beliefs = self.unaries.clone()
+        # Each level's limb mixtures, used by the upward pass and again by the back-tracking.
+        self.mixture = {
+            level: tuple(_per_map(t, level, b) for t in (mean, var, log_gamma)) for level in LEVELS
+        }
+        for level in reversed(LEVELS):
+            messages = max_convolve(
+                _level_maps(beliefs, level), *self.mixture[level], chunk_elements
+            )
+            messages = messages.view(b, len(level), *beliefs.shape[2:])
+            # In reverse order, as a loop over the children one at a time adds them: the same sums.
+            for k in reversed(range(len(level))):
+                beliefs[:, PARENT[level[k]]] += messages[:, k]
+        self.root = beliefs[:, ROOT]
 
-    # Each level's limb mixtures, used by the upward pass and again by the back-tracking.
-    mixture = {level: tuple(per_map(t, level) for t in (mean, var, log_gamma)) for level in LEVELS}
-    for level in reversed(LEVELS):
-        messages = max_convolve(maps(level), *mixture[level], chunk_elements)
-        messages = messages.view(b, len(level), height, width)
-        # In reverse order, as a loop over the children one at a time adds them: the same sums.
-        for k in reversed(range(len(level))):
-            beliefs[:, PARENT[level[k]]] += messages[:, k]
-    score, flat = beliefs[:, ROOT].reshape(b, -1).max(dim=1)
-    cells = torch.zeros(b, NUM_JOINTS, 2, dtype=torch.long, device=unaries.device)
-    cells[:, ROOT, 0], cells[:, ROOT, 1] = flat % width, flat // width
-    for level in LEVELS:
-        parents = cells[:, [PARENT[child] for child in level]].reshape(-1, 2)
-        best, _ = best_child(maps(level), parents, *mixture[level])
-        cells[:, list(level)] = best.view(b, len(level), 2)
-    joint_scores = (
-        unaries.to(dtype).flatten(2).gather(2, (cells[..., 1] * width + cells[..., 0])[..., None])
-    )
-    joints_2d = cells.to(torch.float32) * scale.reshape(-1, 1, 1).to(torch.float32)
-    return PsmResult(joints_2d, cells, score, joint_scores[..., 0])
+    def poses(self, roots: Tensor) -> PsmResult:
+        """The best pose below each of K root cells per item: roots (B, K, 2) long (x, y).
+        Returns PsmResult with a K axis: joints_2d, cells (B, K, 14, 2), score (B, K) the root's
+        score, joint_scores (B, K, 14)."""
+        b, k = roots.shape[:2]
+        height, width = self.root.shape[1:]
+        cells = roots.new_zeros(b, k, NUM_JOINTS, 2)
+        cells[:, :, ROOT] = roots
+        for level in LEVELS:
+            parents = cells[:, :, [PARENT[child] for child in level]]  # (B, K, L, 2)
+            maps = _level_maps(self.beliefs, level).view(b, 1, len(level), height, width)
+            mixture = (t.view(b, 1, len(level), *t.shape[1:]) for t in self.mixture[level])
+            best, _ = best_child(
+                maps.expand(b, k, -1, -1, -1).reshape(-1, height, width),
+                parents.reshape(-1, 2),
+                *(t.expand(b, k, *t.shape[2:]).reshape(-1, *t.shape[3:]) for t in mixture),
+            )
+            cells[:, :, list(level)] = best.view(b, k, len(level), 2)
+        at = (cells[..., 1] * width + cells[..., 0]).transpose(1, 2)  # (B, 14, K)
+        joint_scores = self.unaries.flatten(2).gather(2, at).transpose(1, 2)
+        score = self.root.flatten(1).gather(1, roots[..., 1] * width + roots[..., 0])
+        joints_2d = cells.to(torch.float32) * self.scale.reshape(-1, 1, 1, 1).to(torch.float32)
+        return PsmResult(joints_2d, cells, score, joint_scores)
+
+
+def _per_map(t: Tensor, level: tuple[int, ...], b: int) -> Tensor:
+    """(1|B, 13, ...) mixture parameters -> (B * len(level), ...) for a level's maps."""
+    t = t[:, [_LIMB_OF_CHILD[child] for child in level]]
+    return t.expand(b, *t.shape[1:]).reshape(b * len(level), *t.shape[2:])
+
+
+def _level_maps(beliefs: Tensor, level: tuple[int, ...]) -> Tensor:
+    """(B, 14, H, W) -> (B * len(level), H, W): the maps of a level's joints."""
+    return beliefs[:, list(level)].reshape(-1, *beliefs.shape[2:])

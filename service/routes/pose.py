@@ -1,47 +1,73 @@
-"""POST /v1/pose: an image in, the 2D and 3D pose of its person out, through the pose batcher."""
+"""POST /v1/pose: an image in, the 2D and 3D poses of its people out, through the pose batcher."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from typing import Literal
 
 from fastapi import APIRouter, Query, Request
 
+from ds3d.pipeline import MIN_SCORE
 from ds3d.skeleton import JOINT_NAMES
+from service import engine
 from service.deps import RuntimeHandleDep, SettingsDep
 from service.engine import request_timings_ms
 from service.errors import ApiError
-from service.schemas import ERROR_RESPONSES, PoseResponse
+from service.schemas import ERROR_RESPONSES, PeopleResponse, Person, PoseResponse
 from service.uploads import POSE_BODY, read_pose_input
 
 router = APIRouter()
 
 
 @router.post(
-    "/v1/pose", response_model=PoseResponse, responses=ERROR_RESPONSES, openapi_extra=POSE_BODY
+    "/v1/pose",
+    response_model=PoseResponse | PeopleResponse,
+    responses=ERROR_RESPONSES,
+    openapi_extra=POSE_BODY,
 )
 async def pose(
     request: Request,
     settings: SettingsDep,
     runtime: RuntimeHandleDep,
-    bbox: str | None = Query(None, description="JSON [x0, y0, x1, y1] pixels"),
+    bbox: str | None = Query(None, description="JSON [x0, y0, x1, y1] pixels; skips the search"),
     intrinsics: str | None = Query(None, description="JSON 3x3 camera matrix"),
-) -> PoseResponse:
-    """2D and 3D pose of the person in one image: multipart field `image`, or the raw image
-    as the body with an image/* content type. The image is checked (size, header, decoding)
-    before the model is consulted, so a bad image is reported whatever the deployment."""
+    people: Literal["best", "all"] = Query(
+        "best", description="best: the likeliest person, as one pose; all: every person found"
+    ),
+    min_score: float = Query(
+        MIN_SCORE, ge=0.0, le=1.0, description="people scoring less are not answered"
+    ),
+) -> PoseResponse | PeopleResponse:
+    """2D and 3D poses of the people in one image: multipart field `image`, or the raw image
+    as the body with an image/* content type. Without a bbox the image is searched for people
+    of any size. The image is checked (size, header, decoding) before the model is consulted,
+    so a bad image is reported whatever the deployment."""
     t0 = time.perf_counter()
     item = await read_pose_input(request, settings, bbox, intrinsics)
+    item = dataclasses.replace(item, people=people, min_score=min_score)
     rt = runtime.require()
     if rt.pose is None:
         raise ApiError(503, "model_unavailable", rt.engine.pose_unavailable or "no 2D stage")
     out = await rt.pose.submit(item, settings.request_timeout_s)
-    return PoseResponse(
-        joint_names=list(JOINT_NAMES),
-        joints_2d=out.joints_2d.tolist(),
-        joints_3d=out.joints_3d.tolist(),
-        confidence=out.confidence.tolist(),
-        facing_camera=out.facing_camera,
-        joint_set=out.joint_set,
-        model=rt.engine.model_id,
-        timings_ms=request_timings_ms([out], time.perf_counter() - t0),
+    common = {
+        "joint_names": list(JOINT_NAMES),
+        "model": rt.engine.model_id,
+        "timings_ms": request_timings_ms([out], time.perf_counter() - t0),
+    }
+    if people == "all":
+        return PeopleResponse(people=[_person(p) for p in out.people], **common)
+    (best,) = out.people
+    return PoseResponse(**_person(best).model_dump(), person_found=best.person_found, **common)
+
+
+def _person(found: engine.Person) -> Person:
+    return Person(
+        box=found.box.tolist(),
+        score=found.score,
+        joints_2d=found.joints_2d.tolist(),
+        joints_3d=found.joints_3d.tolist(),
+        confidence=found.confidence.tolist(),
+        facing_camera=found.facing_camera,
+        joint_set=found.joint_set,
     )

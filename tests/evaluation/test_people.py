@@ -1,7 +1,8 @@
 import numpy as np
 
+from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import load_lsp
-from ds3d.evaluation.people import iou, match, person_boxes, protocol, score
+from ds3d.evaluation.people import match, protocol, score
 
 
 def test_iou_and_greedy_matching_take_each_person_once():

@@ -368,3 +368,31 @@ def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
     assert report["latency_ms_ok"]["p50"] > 0 and (tmp_path / "t.png").stat().st_size > 0
     with pytest.raises(SystemExit):
         loadtest.parse_args(["http://example.com:8000"])  # only local targets
+
+
+def test_people_all_and_nobody(engine):
+    """A canvas of two LSP test people: people=all answers both (boxes matching theirs), the
+    default answers one person, found; a blank image answers nobody, and person_found false."""
+    if engine.pipeline is None:
+        pytest.skip("the bundled models have no 2D stage")
+    from ds3d.boxes import iou
+    from ds3d.evaluation.people import compose
+
+    canvas = compose(load_lsp(split="test"), [3, 8], [0.8, 0.5], np.random.default_rng(0))
+    assert len(canvas.sources) == 2
+    with serve(engine, max_wait_ms=30) as u, PoseClient(u, retries=0) as client:
+        people = client.find_people(canvas.image)
+        assert len(people) >= 2 and [p.score for p in people] == sorted(
+            [p.score for p in people], reverse=True
+        )
+        overlap = iou(np.stack([p.box for p in people]), canvas.boxes())
+        assert (overlap.max(0) >= 0.5).all(), overlap
+        best = client.estimate(canvas.image)
+        assert best.person_found and best.score >= people[0].score - 1e-6
+        blank = np.full((480, 640, 3), 128, np.uint8)
+        assert client.find_people(blank) == []
+        nobody = client.estimate(blank)
+        assert not nobody.person_found and nobody.joints_2d.shape == (14, 2)
+        # a box given skips the search: the person is where the caller says
+        boxed = client.estimate(blank, bbox=[100, 100, 300, 400])
+        assert boxed.person_found

@@ -1,0 +1,141 @@
+"""Finding people in a whole image, at any size: where the 2D stage's crops come from when the
+caller gives no box.
+
+The joint network runs over a pyramid of the image wide enough for people from
+SearchParams.min_height to max_height of the image height; on each level the PSM's upward pass
+(ds3d.image2d.psm.RootScores) scores every root position, and its local maxima are people (the
+PSM as an articulated-person detector). The network's raw logits are the unaries here, not its
+per-map softmax: the softmax shares one unit of probability among everybody in the image, the
+logits score each person on its own, comparably across images and levels. The proposals of all
+levels then go through non-maximum suppression (ds3d.boxes.suppress) on their pose's boxes.
+
+The proposals only say where and how large people are: each is then estimated in its box by
+the full 2D stage (PoseEstimator2D.estimate), whose PSM score `person_probability` maps to the
+probability that the box holds a person.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ds3d.boxes import person_boxes, suppress
+from ds3d.image2d.crops import resize_image
+from ds3d.image2d.features import lab_channels
+from ds3d.image2d.jointnet import STRIDE, JointNet, logits_to_grid, padded_logits
+from ds3d.image2d.psm import PairwiseMixtures, RootScores
+
+# The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
+# was trained with (ds3d.training.jointnet.ZOOM).
+LEVEL_REACH = (0.7, 1.3)
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """How the whole-image search runs (chosen on LSP train's held-out images:
+    docs/RESULTS.md, people in photos).
+
+    min_height, max_height: the people sought, person extent (the longer side of the joints'
+        box) as a fraction of the image height.
+    level_ratio: the person extent of one pyramid level over the previous one's.
+    psm_stride: px of the working scale per PSM cell (the network's maps max-pooled to it).
+    peak_radius: cells; a root score is a proposal where it is the maximum within the radius.
+    peaks_per_level: at most this many proposals per level.
+    overlap: IoU above which the lesser of two proposals (or of two people) is dropped.
+    max_people: at most this many proposals per image go on to the full 2D stage.
+    proposal_floor: proposals whose root score is below it do not (the best one always does).
+    score_center, score_width: person_probability = sigmoid((psm score - center) / width).
+    """
+
+    min_height: float = 0.15
+    max_height: float = 1.2
+    level_ratio: float = 1 / 0.6
+    psm_stride: int = 8
+    peak_radius: int = 3
+    peaks_per_level: int = 5
+    overlap: float = 0.5
+    max_people: int = 8
+    proposal_floor: float = 110.0
+    score_center: float = -225.0
+    score_width: float = 9.7
+
+
+@dataclass
+class Proposals:
+    """People proposed in one image, best first: poses (N, 14, 2) px of the image, scores (N,)
+    the PSM root scores on the network's logits (higher = surer, not a probability), boxes
+    (N, 4) x0, y0, x1, y1 px (ds3d.boxes.person_boxes)."""
+
+    poses: np.ndarray
+    scores: np.ndarray
+
+    @property
+    def boxes(self) -> np.ndarray:
+        return person_boxes(self.poses)
+
+
+def level_extents(height: int, params: SearchParams) -> list[float]:
+    """Person extents (px of the image), one per pyramid level, smallest first: from the one
+    whose reach starts at min_height * height up to the first whose reach ends past
+    max_height * height."""
+    low, high = LEVEL_REACH
+    first = params.min_height * height / low
+    count = math.ceil(
+        math.log(params.max_height / params.min_height * low / high) / math.log(params.level_ratio)
+    )
+    return [first * params.level_ratio**k for k in range(max(count, 0) + 1)]
+
+
+def local_peaks(scores: torch.Tensor, radius: int, count: int) -> torch.Tensor:
+    """The best `count` local maxima of a map: scores (H, W) -> (K, 2) long cells (x, y), K <=
+    count, best first; a cell is a maximum when no cell within `radius` (a square) is higher."""
+    pooled = F.max_pool2d(scores[None, None], 2 * radius + 1, 1, radius)[0, 0]
+    values = torch.where(scores >= pooled, scores, -torch.inf).flatten()
+    top = values.topk(min(count, values.numel()))
+    found = top.indices[torch.isfinite(top.values)]
+    width = scores.shape[1]
+    return torch.stack((found % width, found // width), -1)
+
+
+def propose(
+    net: JointNet,
+    mixtures: PairwiseMixtures,
+    image: np.ndarray,
+    canonical_extent: float,
+    unary_weight: float,
+    params: SearchParams,
+) -> Proposals:
+    """The people of one image (H, W, 3) uint8 RGB: the search of the module docstring, on the
+    calling thread. canonical_extent: px of a person at the working scale; unary_weight: the
+    PSM's weight on its unaries (EstimatorParams)."""
+    height, width = image.shape[:2]
+    poses, scores = [], []
+    pool = max(params.psm_stride // STRIDE, 1)
+    for extent in level_extents(height, params):
+        resized = resize_image(image, canonical_extent / extent)
+        if min(resized.shape[:2]) < 2 * STRIDE * pool:
+            continue  # the level's image is smaller than a few PSM cells
+        logits = padded_logits(net, lab_channels(torch.from_numpy(resized)[None]))
+        grid = logits_to_grid(logits, *resized.shape[:2], STRIDE)
+        grid = F.max_pool2d(grid, pool, ceil_mode=True)
+        upward = RootScores(grid * unary_weight, mixtures, stride=float(STRIDE * pool))
+        peaks = local_peaks(upward.root[0], params.peak_radius, params.peaks_per_level)
+        found = upward.poses(peaks[None])
+        to_image = np.array([width / resized.shape[1], height / resized.shape[0]])
+        poses.append(found.joints_2d[0].numpy() * to_image)
+        scores.append(found.score[0].float().numpy())
+    if not poses:
+        return Proposals(np.zeros((0, 14, 2), np.float32), np.zeros(0, np.float32))
+    poses_all, scores_all = np.concatenate(poses), np.concatenate(scores)
+    kept = suppress(person_boxes(poses_all), scores_all, params.overlap)
+    return Proposals(poses_all[kept].astype(np.float32), scores_all[kept])
+
+
+def person_probability(psm_score: torch.Tensor, params: SearchParams) -> torch.Tensor:
+    """The 2D stage's PSM score (Estimate2D.score) of a person box -> the probability that it
+    holds a person: a logistic fit on LSP train's held-out images (SearchParams)."""
+    return torch.sigmoid((psm_score - params.score_center) / params.score_width)
