@@ -219,8 +219,7 @@ class Pipeline:
         t_start = time.perf_counter()
         # The crops: each given box, whose scale the 2D stage chooses, and each proposal's,
         # whose scale the search has already found; and the whole image, a crop of its own:
-        # where a photo is a tight crop around its person it is the better one (held-out LSP
-        # train images, PCK@0.2 77.2 against 76.0 without it; docs/RESULTS.md).
+        # where a photo is a tight crop around its person it is the better one.
         searched = [i for i, box in enumerate(boxes) if box is None]
         proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
         crops = [(i, box, False) for i, box in enumerate(boxes) if box is not None]

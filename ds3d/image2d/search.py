@@ -67,15 +67,10 @@ class SearchParams:
 @dataclass
 class Proposals:
     """People proposed in one image, best first: poses (N, 14, 2) px of the image, scores (N,)
-    the PSM root scores on the network's logits (higher = surer, not a probability), boxes
-    (N, 4) x0, y0, x1, y1 px (ds3d.boxes.person_boxes)."""
+    the PSM root scores on the network's logits (higher = surer, not a probability)."""
 
     poses: np.ndarray
     scores: np.ndarray
-
-    @property
-    def boxes(self) -> np.ndarray:
-        return person_boxes(self.poses)
 
 
 def level_extents(height: int, params: SearchParams) -> list[float]:
