@@ -115,6 +115,27 @@ class PipelineResult:
     score: torch.Tensor
     person_found: torch.Tensor
 
+    @classmethod
+    def empty(cls, iterations: int, timings_ms: dict[str, float]) -> PipelineResult:
+        """Nobody: every field with N = 0."""
+        n, j = 0, NUM_JOINTS
+        return cls(
+            joints_2d=torch.zeros(n, j, 2),
+            joints_2d_initial=torch.zeros(n, j, 2),
+            joints_2d_iterations=torch.zeros(n, iterations, j, 2),
+            joints_3d=torch.zeros(n, j, 3),
+            confidence=torch.zeros(n, j),
+            facing_camera=torch.zeros(n),
+            joint_set=[],
+            psm_energy=torch.zeros(n, iterations),
+            iterations=iterations,
+            timings_ms=timings_ms,
+            image_index=torch.zeros(n, dtype=torch.long),
+            box=torch.zeros(n, 4),
+            score=torch.zeros(n),
+            person_found=torch.zeros(n, dtype=torch.bool),
+        )
+
     def item(self, i: int) -> dict:
         """Person i's result as JSON-ready lists."""
         return {
@@ -218,18 +239,17 @@ class Pipeline:
         boxes = [None] * len(images) if bboxes is None else list(bboxes)
         t_start = time.perf_counter()
         # The crops: each given box, whose scale the 2D stage chooses, and each proposal's,
-        # whose scale the search has already found; and the whole image, a crop of its own:
-        # where a photo is a tight crop around its person it is the better one.
+        # whose scale the search has already found; and the whole image as one more given box:
+        # where a photo is a tight crop around its person it is the better one, and it finds
+        # people the edge of the image cuts.
         searched = [i for i, box in enumerate(boxes) if box is None]
         proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
         crops = [(i, box, False) for i, box in enumerate(boxes) if box is not None]
         for i, found in zip(searched, proposals, strict=True):
-            crops += [(i, box, True) for box in self._proposal_boxes(found)] + [(i, None, False)]
+            whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
+            crops += [(i, box, True) for box in self._proposal_boxes(found)] + [(i, whole, False)]
         search_ms = 1000 * (time.perf_counter() - t_start)
         owner_t = torch.tensor([i for i, _, _ in crops], dtype=torch.long)
-        if intrinsics is not None:
-            intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
-            intrinsics = intrinsics[owner_t] if intrinsics.ndim == 3 else intrinsics
         parts = []
         for at_scale in (False, True):
             rows = [k for k, crop in enumerate(crops) if crop[2] == at_scale]
@@ -242,13 +262,20 @@ class Pipeline:
                 parts.append((torch.tensor(rows), part))
         estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(crops))
         estimate.timings = {k: sum(part.timings.get(k, 0.0) for _, part in parts) for k in STEPS_2D}
-        result = self.lift_estimate(estimate, intrinsics, iterations)
-        result.image_index = owner_t
+        # Who is answered is settled on the 2D stage's poses, so that only they are lifted.
+        score = person_probability(estimate.score.float(), self.config.search)
         given = torch.tensor([boxes[i] is not None for i, _, _ in crops])
-        result.person_found = given | (result.score >= min_score)
+        found = given | (score >= min_score)
+        answered = self._answered(owner_t, estimate.joints_2d, score, found, people)
+        if intrinsics is not None:
+            intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
+            intrinsics = intrinsics[owner_t[answered]] if intrinsics.ndim == 3 else intrinsics
+        result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations)
+        result.image_index = owner_t[answered]
+        result.person_found = found[answered]
         result.timings_ms = {"search": round(search_ms, 3), **result.timings_ms}
         result.timings_ms["total"] = round(1000 * (time.perf_counter() - t_start), 3)
-        return result.rows(self._answered(result, people))
+        return result
 
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
         """The boxes of an image's proposals that go on to the 2D stage (the box of the
@@ -260,22 +287,24 @@ class Pipeline:
         poses = proposals.poses[: len(keep)][keep]
         return list(np.concatenate([poses.min(1), poses.max(1)], 1))
 
-    def _answered(self, result: PipelineResult, people: str) -> torch.Tensor:
-        """Of every crop's result, the rows answered: per image, after non-maximum suppression
-        of their boxes by score, the best one ("best") or those found ("all")."""
-        rows = []
-        for image in result.image_index.unique().tolist():
-            own = torch.nonzero(result.image_index == image).view(-1)
-            kept = own[
-                suppress(
-                    result.box[own].numpy(), result.score[own].numpy(), self.config.search.overlap
-                )
-            ]
-            if people == "best":
-                rows.append(kept[:1])
-            else:
-                rows.append(kept[result.person_found[kept]])
-        return torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
+    def _answered(
+        self,
+        image_index: torch.Tensor,
+        joints_2d: torch.Tensor,
+        score: torch.Tensor,
+        found: torch.Tensor,
+        people: str,
+    ) -> torch.Tensor:
+        """Of every crop's 2D pose (image_index (N,), joints_2d (N, 14, 2) px, score (N,),
+        found (N,) bool), the rows answered: per image, after non-maximum suppression of
+        their boxes by score, the best one ("best") or those found ("all")."""
+        boxes = person_boxes(joints_2d.numpy())
+        rows = [torch.zeros(0, dtype=torch.long)]
+        for image in image_index.unique().tolist():
+            own = torch.nonzero(image_index == image).view(-1)
+            kept = own[suppress(boxes[own], score[own].numpy(), self.config.search.overlap)]
+            rows.append(kept[:1] if people == "best" else kept[found[kept]])
+        return torch.cat(rows)
 
     @torch.inference_mode()
     def lift_estimate(
@@ -289,6 +318,8 @@ class Pipeline:
         lifter, dev = self.lifter, self.lifter.device
         t_start = time.perf_counter()
         timings = {f"2d_{step}": 1000 * estimate.timings.get(step, 0.0) for step in STEPS_2D}
+        if len(estimate.joints_2d) == 0:
+            return PipelineResult.empty(cfg.iterations, timings)
         est = dataclasses.replace(
             estimate, unaries=estimate.unaries.to(dev), map_to_image=estimate.map_to_image.to(dev)
         )

@@ -75,14 +75,36 @@ def render(
     joints_3d: np.ndarray,
     initial_2d: np.ndarray | None = None,
     caption: str = "",
+    scores: np.ndarray | None = None,
 ) -> None:
     """Write a PNG: the image with the 2D poses (px, (14, 2) or (P, 14, 2)) and the 3D poses
-    (mm, (14, 3) or (P, 14, 3), camera-oriented) seen from the camera and from the side."""
-    fig = Figure(figsize=(9, 3.4), dpi=100)
+    (mm, (14, 3) or (P, 14, 3), camera-oriented) seen from the camera and from the side. With
+    several people, scores (P,) labels each in the image, and the 3D views show them in the
+    image's left-to-right order."""
+    joints_2d = np.asarray(joints_2d).reshape(-1, NUM_JOINTS, 2)
+    joints_3d = np.asarray(joints_3d).reshape(-1, NUM_JOINTS, 3)
+    order = np.argsort(joints_2d[..., 0].mean(-1), kind="stable")
+    aspect = image.shape[1] / image.shape[0]
+    # the image's panel as wide as its aspect asks, beside two square 3D views
+    fig = Figure(figsize=(3.2 * (max(aspect, 0.7) + 2), 3.6), dpi=100)
     FigureCanvasAgg(fig)
-    draw_2d(fig.add_subplot(1, 3, 1), image, np.asarray(joints_2d), initial_2d)
-    draw_3d(fig.add_subplot(1, 3, 2, projection="3d"), np.asarray(joints_3d), -90, "camera view")
-    draw_3d(fig.add_subplot(1, 3, 3, projection="3d"), np.asarray(joints_3d), 0, "side view")
+    grid = fig.add_gridspec(1, 3, width_ratios=[max(aspect, 0.7), 1, 1])
+    ax = fig.add_subplot(grid[0])
+    draw_2d(ax, image, joints_2d[order], initial_2d)
+    if scores is not None:
+        for person, score in zip(joints_2d, np.asarray(scores), strict=True):
+            x, y = person[:, 0].min(), person[:, 1].min()
+            ax.text(
+                x,
+                y,
+                f"{score:.2f}",
+                color="white",
+                fontsize=8,
+                va="bottom",
+                bbox={"facecolor": "black", "alpha": 0.6, "pad": 1, "lw": 0},
+            )
+    draw_3d(fig.add_subplot(grid[1], projection="3d"), joints_3d[order], -90, "camera view")
+    draw_3d(fig.add_subplot(grid[2], projection="3d"), joints_3d[order], 0, "side view")
     if caption:
         fig.suptitle(caption, fontsize=9)
     fig.tight_layout()

@@ -92,17 +92,26 @@ def evaluate_refinement(
     overrides: dict | None = None,
     batch: int = 16,
     progress: Progress | None = None,
+    searched: bool = False,
 ) -> dict:
     """The protocol for the 2D pose after each iteration of each of REFINEMENT_VARIANTS
     `names` (with PipelineConfig field `overrides`), beside the 2D stage's ("initial"), all
-    from one 2D estimate per image. Leaves the pipeline configured as the last variant.
+    from one 2D estimate per image. searched: also the pipeline as a user without a box runs
+    it ("searched": the best person the search finds, ds3d.image2d.search), what the tight
+    crops' own box is worth. Leaves the pipeline configured as the last variant.
     Returns {"variants", "seconds", "results"}."""
     overrides = overrides or {}
     preds: dict[str, list[torch.Tensor]] = {"initial": []}
-    seconds = dict.fromkeys(["2d", *names], 0.0)
+    seconds = dict.fromkeys(["2d", *names, *(["searched"] if searched else [])], 0.0)
     for start in range(0, len(ann), batch):
         t0 = time.perf_counter()
         images = [read_image(p) for p in ann.image_paths[start : start + batch]]
+        if searched:
+            pipeline.config, lifter_config = variant_configs("full", overrides)
+            pipeline.lifter.configure(lifter_config)
+            preds.setdefault("searched", []).append(pipeline.estimate(images).joints_2d)
+            seconds["searched"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
         estimate = pipeline.estimator.estimate(images)
         seconds["2d"] += time.perf_counter() - t0
         preds["initial"].append(estimate.joints_2d)

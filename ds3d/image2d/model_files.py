@@ -152,10 +152,12 @@ def load_facing(path: Path) -> FacingNet:
 def load_jointnet(path: Path, shape: JointNetShape) -> JointNet:
     """The joint network's saved state dict (ds3d.image2d.jointnet) -> the network of `shape`,
     ready for inference (fold_batch_norms), in bfloat16 on a CPU that computes it
-    (CPU_BFLOAT16): autocast would cast the weights again on every call, a fifth of the time."""
+    (CPU_BFLOAT16): autocast would cast the weights again on every call, a fifth of the time;
+    channels-last, as padded_logits feeds it."""
     net = JointNet(shape)
     net.load_state_dict(torch.load(path, weights_only=True))
     net = fold_batch_norms(net)
+    net = net.to(memory_format=torch.channels_last)
     return net.to(torch.bfloat16) if CPU_BFLOAT16 else net
 
 

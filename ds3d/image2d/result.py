@@ -43,6 +43,19 @@ class Estimate2D:
     facing_camera: torch.Tensor
     timings: dict[str, float] = field(default_factory=dict)
 
+    def rows(self, index: torch.Tensor) -> Estimate2D:
+        """The images `index` (K,) long, in that order, with the same timings."""
+        return Estimate2D(
+            self.joints_2d[index],
+            self.joint_scores[index],
+            self.score[index],
+            self.unaries[index],
+            self.map_to_image[index],
+            self.scale[index],
+            self.facing_camera[index],
+            dict(self.timings),
+        )
+
     def sample_unaries(self, points: torch.Tensor) -> torch.Tensor:
         """Unary log-probs at image points, bilinear on the unary grid.
 

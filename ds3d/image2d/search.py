@@ -59,7 +59,7 @@ class SearchParams:
     peaks_per_level: int = 5
     overlap: float = 0.5
     max_people: int = 8
-    proposal_floor: float = 110.0
+    proposal_floor: float = 120.0
     score_center: float = -225.0
     score_width: float = 9.7
 
