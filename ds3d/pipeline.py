@@ -1,8 +1,12 @@
 """ds3d.Pipeline: images in, 2D and 3D poses out, by the dual-source approach end to end.
 
     search           without a box, where the people are (ds3d.image2d.search): each
-                     proposal's box then goes through every step below as its own crop
+                     proposal's box, and the whole image's, goes through the 2D stage as
+                     its own crop
     2D stage         unaries + PSM on a 6-scale pyramid -> x (ds3d.image2d.estimator)
+    who is answered  per image, non-maximum suppression of the crops' poses by score
+                     (ds3d.boxes), the best ("best") or those scoring min_score ("all");
+                     only they go on
     per iteration t = 1..T (the query is x, then the refined x^ of the previous iteration):
       retrieval      K neighbours per joint set                         (ds3d.lifter)
       projection fit M_s per set (eq:projerr1), warm-started from t - 1 (ds3d.lifter)
