@@ -210,7 +210,8 @@ def gallery_of_photos(pipeline, folder: Path, out: Path) -> int:
     from ds3d.render import render
 
     out.mkdir(parents=True, exist_ok=True)
-    for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")):
+    photos = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    for path in photos:
         image = read_image(path)
         found = pipeline.estimate([image], people="all")
         scores = ", ".join(f"{s:.2f}" for s in found.score.tolist())

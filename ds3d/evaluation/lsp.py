@@ -104,14 +104,14 @@ def evaluate_refinement(
     preds: dict[str, list[torch.Tensor]] = {"initial": []}
     seconds = dict.fromkeys(["2d", *names, *(["searched"] if searched else [])], 0.0)
     for start in range(0, len(ann), batch):
-        t0 = time.perf_counter()
         images = [read_image(p) for p in ann.image_paths[start : start + batch]]
         if searched:
+            t0 = time.perf_counter()
             pipeline.config, lifter_config = variant_configs("full", overrides)
             pipeline.lifter.configure(lifter_config)
             preds.setdefault("searched", []).append(pipeline.estimate(images).joints_2d)
             seconds["searched"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
+        t0 = time.perf_counter()
         estimate = pipeline.estimator.estimate(images)
         seconds["2d"] += time.perf_counter() - t0
         preds["initial"].append(estimate.joints_2d)
