@@ -8,7 +8,36 @@ from __future__ import annotations
 
 import numpy as np
 
+from ds3d.errors import InvalidBox
+
 BOX_MARGIN = 0.1  # of the joints' extent, on every side
+
+
+def checked_box(box, width: int, height: int) -> np.ndarray:
+    """A person box given by a user, (x0, y0, x1, y1) px, checked against its image of width x
+    height px -> (4,) float32. The one place where the CLI, the Python API and the service
+    refuse a box: raises InvalidBox, naming why, when it is not four finite numbers, its corners
+    are reversed or it has no area, or it does not overlap the image. A box that overlaps the
+    image only in part is kept (the 2D stage crops what lies inside)."""
+    try:
+        values = np.asarray(box, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise InvalidBox(f"bbox must be four numbers x0, y0, x1, y1; got {box!r}") from err
+    if values.size != 4:
+        raise InvalidBox(f"bbox must be four numbers x0, y0, x1, y1; got {values.size}")
+    if not np.isfinite(values).all():
+        raise InvalidBox("bbox has a NaN or infinite coordinate")
+    x0, y0, x1, y1 = values
+    if x1 <= x0 or y1 <= y0:
+        raise InvalidBox(
+            f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] has no area: it wants x1 > x0 and y1 > y0 "
+            "(corners x0, y0, x1, y1, not x, y, width, height)"
+        )
+    if x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height:
+        raise InvalidBox(
+            f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] lies outside the {width}x{height} image"
+        )
+    return values.astype(np.float32)
 
 
 def person_boxes(joints: np.ndarray, located: np.ndarray | None = None) -> np.ndarray:

@@ -13,5 +13,10 @@ class InvalidImage(Ds3dError, ValueError):
     """An image is empty, corrupt, not an image, or too large to decode."""
 
 
+class InvalidBox(Ds3dError, ValueError):
+    """A person box is not four finite numbers, has reversed corners or no area, or lies outside
+    its image."""
+
+
 class DataFormatError(Ds3dError, ValueError):
     """A dataset or model file is missing, malformed or not what its reader expects."""

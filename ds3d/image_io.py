@@ -12,7 +12,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from ds3d.errors import InvalidImage
 
@@ -21,7 +21,8 @@ DEFAULT_MAX_PIXELS = 40_000_000
 
 
 def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
-    """Image file bytes (JPEG, PNG, BMP, WebP, ...) -> (H, W, 3) uint8 RGB.
+    """Image file bytes (JPEG, PNG, BMP, WebP, ...) -> (H, W, 3) uint8 RGB, upright by the
+    EXIF orientation tag where there is one.
 
     Raises InvalidImage if the bytes are empty, not an image, corrupt or truncated, or if the
     header claims more than max_pixels pixels (checked before decoding).
@@ -42,7 +43,9 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarra
                     f"more than the limit of {max_pixels}"
                 )
             img.load()  # raises OSError on truncated or corrupt data
-            rgb = img.convert("RGB")
+            # as the photo was taken: a phone's JPEG stores its pixels as the sensor read them
+            # and says how to turn them in the EXIF orientation tag
+            rgb = ImageOps.exif_transpose(img).convert("RGB")
     except InvalidImage:
         raise
     except Image.DecompressionBombError as exc:

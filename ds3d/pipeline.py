@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ds3d.boxes import person_boxes, suppress
+from ds3d.boxes import checked_box, person_boxes, suppress
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
 from ds3d.image2d.estimator import PoseEstimator2D
@@ -230,8 +230,8 @@ class Pipeline:
         (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations.
         people: "best", one person per image (PipelineResult.person_found says whether anybody
         scored min_score), or "all", every person scoring at least min_score (none for an image
-        without people). Raises InvalidImage, InvalidPose (bad intrinsics) or ValueError (bad
-        boxes, people or min_score).
+        without people). Raises InvalidImage, InvalidBox (ds3d.boxes.checked_box), InvalidPose
+        (bad intrinsics) or ValueError (bad people or min_score).
         """
         if people not in PEOPLE:
             raise ValueError(f"people must be one of {PEOPLE}, got {people!r}")
@@ -240,7 +240,11 @@ class Pipeline:
         images = list(images)
         if bboxes is not None and len(bboxes) != len(images):
             raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
-        boxes = [None] * len(images) if bboxes is None else list(bboxes)
+        given = [None] * len(images) if bboxes is None else bboxes
+        boxes = [
+            None if box is None else checked_box(box, image.shape[1], image.shape[0])
+            for image, box in zip(images, given, strict=True)
+        ]
         t_start = time.perf_counter()
         # The crops: each given box, whose scale the 2D stage chooses, and each proposal's,
         # whose scale the search has already found; and the whole image as one more given box:

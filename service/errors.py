@@ -10,7 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from ds3d.errors import InvalidImage, InvalidPose
+from ds3d.errors import InvalidBox, InvalidImage, InvalidPose
 from service.batching import DeadlineExceeded, ItemFailed, QueueFull, ShuttingDown
 
 log = logging.getLogger("service")
@@ -56,6 +56,8 @@ def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
         return ApiError(504, "timeout", f"the request timed out: {exc}")
     if isinstance(exc, InvalidPose):
         return ApiError(422, "invalid_pose", str(exc))
+    if isinstance(exc, InvalidBox):
+        return ApiError(422, "invalid_box", str(exc))
     if isinstance(exc, InvalidImage):
         return ApiError(422, "invalid_image", str(exc))
     log.exception("unexpected error", exc_info=exc)

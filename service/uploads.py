@@ -11,6 +11,7 @@ from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
 from starlette.datastructures import FormData, UploadFile
 
+from ds3d.boxes import checked_box
 from ds3d.image_io import decode_image
 from service.engine import PoseInput
 from service.errors import ApiError
@@ -47,8 +48,8 @@ async def read_pose_input(
 ) -> PoseInput:
     """The image, box and intrinsics of a /v1/pose request. bbox, intrinsics: the query
     parameters (JSON text), which multipart form fields of the same names override. Raises
-    ApiError 413 (too large), 415 (not an image content type), 422 (missing field, bad array,
-    or, as InvalidImage, an image that does not decode)."""
+    ApiError 413 (too large), 415 (not an image content type), 422 (missing field, bad array),
+    InvalidImage (an image that does not decode) or InvalidBox (a box the image cannot hold)."""
     limit = settings.max_image_bytes
     ctype = request.headers.get("content-type", "").lower()
     _refuse_declared_oversize(request, limit)
@@ -63,6 +64,8 @@ async def read_pose_input(
     box = parse_array(bbox, (4,), "bbox")
     k = parse_array(intrinsics, (3, 3), "intrinsics")
     image = await run_in_threadpool(decode_image, data, settings.max_image_pixels)
+    if box is not None:
+        box = checked_box(box, image.shape[1], image.shape[0])
     return PoseInput(image, box, k)
 
 

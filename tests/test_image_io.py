@@ -87,3 +87,17 @@ def test_read_image_from_paths(tmp_path):
     for bad in (tmp_path / "empty.jpg", tmp_path / "missing.png", tmp_path):
         with pytest.raises(InvalidImage):
             read_image(bad)
+
+
+def test_exif_orientation_6_is_applied():
+    """A phone JPEG stored landscape with orientation 6 ("rotate 90 clockwise to view") decodes
+    portrait, its top-left marker at the top right."""
+    stored = np.zeros((40, 60, 3), np.uint8)
+    stored[:10, :10] = 255  # stored top-left corner
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buf = io.BytesIO()
+    Image.fromarray(stored).save(buf, format="JPEG", quality=95, exif=exif.tobytes())
+    upright = decode_image(buf.getvalue())
+    assert upright.shape == (60, 40, 3)
+    assert upright[:10, -10:].mean() > 200 and upright[:10, :10].mean() < 50

@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from ds3d.paths import MODELS_DIR
+from ds3d.progress import set_quiet
 
 COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.cli.data",
@@ -33,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ds3d", description="The `ds3d` command line: 3D human pose from a single image."
     )
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bars (shown only on a terminal anyway)"
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     evals = commands.add_parser("eval", help="evaluate on a dataset protocol").add_subparsers(
         dest="what", required=True
@@ -47,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    set_quiet(args.quiet)
     return int(args.func(args) or 0)
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ds3d.boxes import checked_box
 from ds3d.errors import InvalidImage
 from ds3d.image2d.params import EstimatorParams
 
@@ -47,16 +48,12 @@ def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> 
             extent = max(image.shape[:2]) / params.image_to_extent
             out.append(Crop(image, 0, 0, params.canonical_extent / extent))
             continue
-        x0, y0, x1, y1 = (float(v) for v in box)
-        if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
-            raise ValueError(f"bbox {i} must be finite (x0, y0, x1, y1) with x1 > x0, y1 > y0")
+        h, w = image.shape[:2]
+        x0, y0, x1, y1 = (float(v) for v in checked_box(box, w, h))
         extent = max(x1 - x0, y1 - y0) / params.box_to_extent
         margin = params.box_margin * extent
-        h, w = image.shape[:2]
         cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
         cx1, cy1 = min(int(np.ceil(x1 + margin)), w), min(int(np.ceil(y1 + margin)), h)
-        if cx1 <= cx0 or cy1 <= cy0:
-            raise ValueError(f"bbox {i} lies outside its image")
         crop = np.ascontiguousarray(image[cy0:cy1, cx0:cx1])
         out.append(Crop(crop, cx0, cy0, params.canonical_extent / extent))
     return out

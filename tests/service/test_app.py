@@ -248,6 +248,29 @@ def test_pose_wrong_content_type_and_missing_field(url):
     assert_error(resp, 422, "invalid_request")
 
 
+@pytest.mark.parametrize(
+    ("box", "why"),
+    [([50, 10, 5, 40], "no area"), ([5, 5, 5, 40], "no area"), ([900, 900, 990, 990], "outside")],
+)
+def test_pose_box_the_image_cannot_hold_is_a_422_that_says_why(url, box, why):
+    for multipart in (False, True):
+        if multipart:
+            resp = httpx.post(
+                f"{url}/v1/pose",
+                files={"image": ("x.jpg", jpeg(), "image/jpeg")},
+                data={"bbox": json.dumps(box)},
+            )
+        else:
+            resp = httpx.post(
+                f"{url}/v1/pose",
+                params={"bbox": json.dumps(box)},
+                content=jpeg(),
+                headers={"content-type": "image/jpeg"},
+            )
+        assert_error(resp, 422, "invalid_box")
+        assert why in resp.json()["error"]["message"]
+
+
 def test_pose_on_a_valid_image(url, engine):
     with PoseClient(url, retries=0) as client:
         if engine.pipeline is None:
