@@ -3,8 +3,8 @@
 __version__ = "0.1.0"
 
 # Loaded on first use, so that `import ds3d` (the CLI, the client SDK) stays cheap.
-_LAZY = {"Pipeline": "ds3d.pipeline", "Lifter": "ds3d.lifter"}
-__all__ = ["Lifter", "Pipeline", "__version__"]
+_LAZY = {"Pipeline": "ds3d.pipeline", "Lifter": "ds3d.lifter", "predict": "ds3d.predictions"}
+__all__ = ["Lifter", "Pipeline", "__version__", "predict"]
 
 
 def __getattr__(name: str):

@@ -285,6 +285,13 @@ class Pipeline:
         result.timings_ms["total"] = round(1000 * (time.perf_counter() - t_start), 3)
         return result
 
+    def predict(self, sources, **options):
+        """Predictions for paths, folders, videos, URLs, arrays or an iterator of them, streamed
+        in batches: ds3d.predictions.predict with this pipeline (options as there)."""
+        from ds3d.predictions import predict  # it builds on this module
+
+        return predict(sources, self, **options)
+
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
         """The boxes of an image's proposals that go on to the 2D stage (the box of the
         proposal's joints, so that the crop's base scale is the proposal's): at most

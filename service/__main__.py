@@ -1,6 +1,8 @@
 """`python -m service` (console script `ds3d-serve`): run the HTTP service with uvicorn.
 
-Settings come from DS3D_* env vars (service/settings.py); the flags below override them.
+Settings come from DS3D_* env vars (service/settings.py); each also has a flag, which overrides
+its env var. The flags are made from the Settings fields by pydantic-settings' CLI support, so a
+new field is a new flag, with its description as help.
 """
 
 from __future__ import annotations
@@ -9,21 +11,50 @@ import argparse
 import logging
 import os
 import sys
-from pathlib import Path
+
+from pydantic import ValidationError
+from pydantic_settings import CliSettingsSource
+
+from service.settings import Settings
+
+
+def parse_settings(argv: list[str] | None = None) -> Settings:
+    """The Settings of a `ds3d-serve` command line (argv: the arguments, default sys.argv[1:]):
+    flags over DS3D_* env vars over defaults. Exits (status 2) with a message on a bad value."""
+    parser = argparse.ArgumentParser(
+        prog="ds3d-serve",
+        description=__doc__.splitlines()[0],
+        epilog="Each setting is a flag and a DS3D_* env var: flags override env vars, which "
+        "override the defaults.",
+    )
+    cli = CliSettingsSource(
+        Settings,
+        root_parser=parser,
+        cli_kebab_case=True,
+        cli_show_env_vars=True,
+        cli_hide_none_type=True,
+    )
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        return Settings(_cli_settings_source=cli(args=args))
+    except ValidationError as exc:
+        parser.error(_invalid(exc))
+
+
+def _invalid(exc: ValidationError) -> str:
+    """One line per bad setting, named by its flag and env var:
+    `--port / DS3D_PORT: Input should be less than or equal to 65535 (got '70000')`."""
+    prefix = Settings.model_config.get("env_prefix", "")
+    lines = []
+    for err in exc.errors(include_url=False):
+        name = "_".join(str(part) for part in err["loc"])
+        flag, env = "--" + name.replace("_", "-"), prefix + name.upper()
+        lines.append(f"{flag} / {env}: {err['msg']} (got {err['input']!r})")
+    return "invalid settings:\n  " + "\n  ".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="ds3d-serve", description=__doc__.splitlines()[0])
-    parser.add_argument("--host", help="bind address (DS3D_HOST, default 127.0.0.1)")
-    parser.add_argument("--port", type=int, help="port (DS3D_PORT, default 8000)")
-    parser.add_argument("--model-dir", type=Path, help="model directory (DS3D_MODEL_DIR)")
-    parser.add_argument("--max-batch-size", type=int, help="DS3D_MAX_BATCH_SIZE")
-    parser.add_argument("--max-wait-ms", type=float, help="DS3D_MAX_WAIT_MS")
-    parser.add_argument("--torch-threads", type=int, help="DS3D_TORCH_THREADS")
-    args = parser.parse_args(argv)
-    from service.settings import Settings
-
-    settings = Settings(**{k: v for k, v in vars(args).items() if v is not None})
+    settings = parse_settings(argv)
     # Before torch loads: keep OpenMP to the configured threads too.
     os.environ.setdefault("OMP_NUM_THREADS", str(settings.torch_threads))
 

@@ -3,7 +3,7 @@ people`."""
 
 from __future__ import annotations
 
-import json
+import os
 import sys
 from pathlib import Path
 
@@ -15,24 +15,46 @@ from ds3d.evaluation.lsp import REFINEMENT_VARIANTS, evaluate_refinement
 
 
 def register(commands, evals, benches) -> None:
-    p = commands.add_parser("predict", help="2D and 3D pose of the person in each image")
-    p.add_argument("images", type=Path, nargs="+")
-    p.add_argument(
-        "--bbox",
-        action="append",
-        help="person box x,y,w,h in px; give it once per image, in order (default: whole image)",
+    p = commands.add_parser(
+        "predict",
+        help="2D and 3D poses of the people in images, folders, videos, a webcam or URLs",
+        description="Writes OUT/predictions.jsonl (a line per image or frame) and, for each "
+        "video, OUT/NAME_3d.npz and .csv; the options add more (ds3d.writers).",
     )
-    p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
+    p.add_argument(
+        "sources",
+        nargs="+",
+        help="image files, folders (every image below, found by content), globs, video files, "
+        "a webcam index (0) or http(s) URLs",
+    )
+    p.add_argument("--out", type=Path, default=Path("predictions"), help="output folder")
+    p.add_argument("--batch-size", type=int, default=16, help="images estimated at once")
+    p.add_argument("--stride", type=int, default=1, help="every n-th frame of a video or webcam")
     p.add_argument(
         "--people",
         choices=("best", "all"),
         default="best",
-        help="best: the likeliest person per image; all: every person found (one render)",
+        help="best: the likeliest person per image; all: every person found",
     )
     p.add_argument("--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE")
-    p.add_argument("--out", type=Path, required=True, help="result JSON")
-    p.add_argument("--render", type=Path, help="PNG; with several images, PATH-<i>.png for image i")
-    add_model_options(p)
+    p.add_argument(
+        "--bbox",
+        help="the person's box x,y,w,h in px, the same in every image (default: people are "
+        "searched for; the Python API and the service take corners x0, y0, x1, y1)",
+    )
+    p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
+    p.add_argument("--json", action="store_true", help="also OUT/json/: a JSON file per image")
+    p.add_argument("--coco", action="store_true", help="also OUT/coco_keypoints.json")
+    p.add_argument(
+        "--overlay",
+        action="store_true",
+        help="also the skeletons drawn: OUT/overlay/*.jpg per image, OUT/NAME_overlay.mp4 per "
+        "video (2D over the frame, 3D beside it)",
+    )
+    p.add_argument(
+        "--device", choices=("cpu", "cuda"), default="cpu", help="where the 3D stage runs"
+    )
+    add_model_options(p, threads=min(2, os.cpu_count() or 1))
     p.set_defaults(func=predict)
 
     p = commands.add_parser("gallery", help="renders of LSP test images picked by a seed")
@@ -102,70 +124,46 @@ def load_pipeline(args):
 
 def corner_box(text: str) -> tuple[float, float, float, float]:
     """'x,y,w,h' px -> (x0, y0, x1, y1), the 2D stage's box."""
-    values = [float(v) for v in text.split(",")]
-    if len(values) != 4 or not np.isfinite(values).all() or values[2] <= 0 or values[3] <= 0:
-        raise SystemExit(f"--bbox wants x,y,w,h with w, h > 0; got {text!r}")
-    x, y, w, h = values
+    try:
+        x, y, w, h = (float(v) for v in text.split(","))
+    except ValueError:
+        raise SystemExit(f"--bbox wants x,y,w,h in px; got {text!r}") from None
     return (x, y, x + w, y + h)
 
 
 def predict(args) -> int:
-    from ds3d.image_io import read_image
-    from ds3d.skeleton import JOINT_NAMES
+    """Streams the sources through the pipeline in batches; a bad source is reported on stderr
+    and in predictions.jsonl, and the run goes on."""
+    from ds3d.pipeline import MIN_SCORE, Pipeline
+    from ds3d.progress import progress
+    from ds3d.writers import RunWriter
 
-    if args.bbox is not None and len(args.bbox) != len(args.images):
-        raise SystemExit(f"{len(args.bbox)} --bbox for {len(args.images)} images: one per image")
-    pipeline = load_pipeline(args)
-    images = [read_image(path) for path in args.images]
-    boxes = None if args.bbox is None else [corner_box(b) for b in args.bbox]
-    from ds3d.pipeline import MIN_SCORE
+    torch.set_num_threads(args.threads)
+    pipeline = Pipeline.load(args.model_dir, device=args.device, database=args.database)
+    skipped = []
+    with (
+        RunWriter(args.out, args.json, args.coco, args.overlay, args.stride) as out,
+        progress(desc="predict", unit="img") as bar,
+    ):
 
-    result = pipeline.estimate(
-        images,
-        bboxes=boxes,
-        iterations=args.iterations,
-        people=args.people,
-        min_score=MIN_SCORE if args.min_score is None else args.min_score,
-    )
-    items = []
-    for i, path in enumerate(args.images):
-        found = result.people_of(i)
-        people = [found.item(k) for k in range(len(found.score))]
-        items.append(
-            {"image": str(path), "people": people}
-            if args.people == "all"
-            else {"image": str(path), **people[0]}
-        )
-    report = {
-        "model": pipeline.model_id,
-        "joint_names": list(JOINT_NAMES),
-        "units": {"joints_2d": "px", "joints_3d": "mm, camera-oriented, root at the hips"},
-        "timings_ms": result.timings_ms,
-        "items": items,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1) + "\n")
-    if args.render is not None:
-        from ds3d.render import render
+        def skip(frame) -> None:
+            skipped.append(frame)
+            out.skip(frame)
+            bar.write(f"skipped {frame.source}: {frame.error}", file=sys.stderr)
 
-        for i, image in enumerate(images):
-            path = args.render
-            if len(images) > 1:
-                path = path.with_name(f"{path.stem}-{i}{path.suffix or '.png'}")
-            found = result.people_of(i)
-            single = args.people == "best"
-            render(
-                path,
-                image,
-                found.joints_2d.numpy(),
-                found.joints_3d.numpy(),
-                found.joints_2d_initial[0].numpy() if single else None,
-                caption=f"{args.images[i].name}: {len(found.score)} people"
-                if not single
-                else f"{args.images[i].name}: joint set {found.joint_set[0]}",
-                scores=None if single else found.score.numpy(),
-            )
-    print(f"wrote {args.out}", file=sys.stderr)
+        for prediction in pipeline.predict(
+            args.sources,
+            batch_size=args.batch_size,
+            stride=args.stride,
+            bbox=None if args.bbox is None else corner_box(args.bbox),
+            people=args.people,
+            min_score=MIN_SCORE if args.min_score is None else args.min_score,
+            iterations=args.iterations,
+            on_skip=skip,
+        ):
+            out.write(prediction)
+            bar.update()
+    print(f"{out.count} images, {len(skipped)} skipped: wrote {args.out}/", file=sys.stderr)
     return 0
 
 
@@ -174,6 +172,7 @@ def gallery(args) -> int:
     from ds3d.data.lsp import load_lsp
     from ds3d.evaluation.metrics import pck
     from ds3d.image_io import read_image
+    from ds3d.progress import progress
     from ds3d.render import render
 
     pipeline = load_pipeline(args)
@@ -181,50 +180,54 @@ def gallery(args) -> int:
         return gallery_of_photos(pipeline, args.photos, args.out / "photos")
     ann = load_lsp(split="test")
     picks = sorted(np.random.default_rng(args.seed).choice(len(ann), args.n, replace=False))
-    images = [read_image(ann.image_paths[i]) for i in picks]
-    result = pipeline.estimate(images)
-    args.out.mkdir(parents=True, exist_ok=True)
-    gt = torch.from_numpy(ann.joints[picks])
-    for j, i in enumerate(picks):
-        name = ann.image_paths[i].stem
-        correct = float(pck(result.joints_2d[j : j + 1], gt[j : j + 1]).mean())
-        caption = (
-            f"LSP {name}: joint set {result.joint_set[j]}, "
-            f"{round(14 * correct)}/14 joints within PCK@0.2"
-        )
-        render(
-            args.out / f"{name}.png",
-            images[j],
-            result.joints_2d[j].numpy(),
-            result.joints_3d[j].numpy(),
-            result.joints_2d_initial[j].numpy(),
-            caption=caption,
-        )
-        print(args.out / f"{name}.png", caption)
+    with progress(total=len(picks), desc="gallery", unit="img") as bar:
+        images = [read_image(ann.image_paths[i]) for i in picks]
+        result = pipeline.estimate(images)  # one batch (the bar waits), then the renders
+        args.out.mkdir(parents=True, exist_ok=True)
+        gt = torch.from_numpy(ann.joints[picks])
+        for j, i in enumerate(picks):
+            name = ann.image_paths[i].stem
+            correct = float(pck(result.joints_2d[j : j + 1], gt[j : j + 1]).mean())
+            caption = (
+                f"LSP {name}: joint set {result.joint_set[j]}, "
+                f"{round(14 * correct)}/14 joints within PCK@0.2"
+            )
+            render(
+                args.out / f"{name}.png",
+                images[j],
+                result.joints_2d[j].numpy(),
+                result.joints_3d[j].numpy(),
+                result.joints_2d_initial[j].numpy(),
+                caption=caption,
+            )
+            bar.write(f"{args.out / f'{name}.png'} {caption}")
+            bar.update()
     return 0
 
 
 def gallery_of_photos(pipeline, folder: Path, out: Path) -> int:
     """Every JPEG or PNG photo of `folder` without a box, every person found, one render each."""
     from ds3d.image_io import read_image
+    from ds3d.progress import progress
     from ds3d.render import render
 
     out.mkdir(parents=True, exist_ok=True)
     photos = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    for path in photos:
-        image = read_image(path)
-        found = pipeline.estimate([image], people="all")
-        scores = ", ".join(f"{s:.2f}" for s in found.score.tolist())
-        caption = f"{path.name}: {len(found.score)} people found (scores {scores or '-'})"
-        render(
-            out / f"{path.stem}.png",
-            image,
-            found.joints_2d.numpy(),
-            found.joints_3d.numpy(),
-            caption=caption,
-            scores=found.score.numpy(),
-        )
-        print(out / f"{path.stem}.png", caption)
+    with progress(photos, desc="gallery", unit="img") as bar:
+        for path in bar:
+            image = read_image(path)
+            found = pipeline.estimate([image], people="all")
+            scores = ", ".join(f"{s:.2f}" for s in found.score.tolist())
+            caption = f"{path.name}: {len(found.score)} people found (scores {scores or '-'})"
+            render(
+                out / f"{path.stem}.png",
+                image,
+                found.joints_2d.numpy(),
+                found.joints_3d.numpy(),
+                caption=caption,
+                scores=found.score.numpy(),
+            )
+            bar.write(f"{out / f'{path.stem}.png'} {caption}")
     return 0
 
 
@@ -244,13 +247,7 @@ def eval_lsp_pipeline(args) -> int:
     ann = ann.subset(range(args.start, len(ann), args.every))
     if args.limit is not None:
         ann = ann.subset(range(min(args.limit, len(ann))))
-
-    def progress(done: int, total: int) -> None:
-        print(f"{done}/{total} images", file=sys.stderr, flush=True)
-
-    results = evaluate_refinement(
-        pipeline, ann, names, overrides, args.batch, progress, args.searched
-    )
+    results = evaluate_refinement(pipeline, ann, names, overrides, args.batch, args.searched)
     split = "test im1001-im2000" if args.split == "test" else "train im0001-im1000"
     report = {
         "dataset": f"LSP {split}, images [{args.start}::{args.every}] of the split",
@@ -272,6 +269,7 @@ def eval_people(args) -> int:
     from ds3d.data.lsp import load_lsp
     from ds3d.evaluation.people import calibration, protocol, score
     from ds3d.pipeline import MIN_SCORE
+    from ds3d.progress import progress
 
     pipeline = load_pipeline(args)
     annotations = load_lsp(split=args.split)
@@ -282,18 +280,23 @@ def eval_people(args) -> int:
         for i, canvas in enumerate(canvases):
             cv2.imwrite(str(args.save / f"{i:04d}.png"), canvas.image[..., ::-1])
     candidates = []  # per canvas: every person answered at min_score 0, (poses, scores)
-    for first in range(0, len(canvases), args.batch):
-        part = canvases[first : first + args.batch]
-        result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
-        for i in range(len(part)):
-            own = result.people_of(i)
-            candidates.append((own.joints_2d.numpy(), own.score.numpy()))
+    with progress(total=len(canvases), desc="people", unit="img") as bar:
+        for first in range(0, len(canvases), args.batch):
+            part = canvases[first : first + args.batch]
+            result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
+            for i in range(len(part)):
+                own = result.people_of(i)
+                candidates.append((own.joints_2d.numpy(), own.score.numpy()))
+            bar.update(len(part))
     # The speed as a user meets it: a second pass at the default min_score, which lifts only
     # the people answered (min_score 0 lifts every candidate).
-    start = time.perf_counter()
-    for first in range(0, len(canvases), args.batch):
-        pipeline.estimate([c.image for c in canvases[first : first + args.batch]], people="all")
-    seconds = time.perf_counter() - start
+    with progress(total=len(canvases), desc="people, timed", unit="img") as bar:
+        start = time.perf_counter()
+        for first in range(0, len(canvases), args.batch):
+            part = canvases[first : first + args.batch]
+            pipeline.estimate([c.image for c in part], people="all")
+            bar.update(len(part))
+        seconds = time.perf_counter() - start
     answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s in candidates]
     report = {
         "split": args.split,

@@ -1,25 +1,101 @@
-"""`ds3d predict` (ds3d.cli.pipeline)."""
+"""`ds3d predict` and the Python predictions (ds3d.cli.pipeline, ds3d.predictions)."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import cv2
 import numpy as np
+import pytest
 
 from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
+from ds3d.image_io import read_image
 from ds3d.skeleton import NUM_JOINTS
 
 
-def test_predict_command_writes_json_and_a_picture(model_dir, data_dir, tmp_path):
+def _clip(path, image, count=4, fps=12.0):
+    """An MP4 of `count` frames of `image` (RGB), shifted a little each frame."""
+    height, width = image.shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+    for k in range(count):
+        writer.write(np.ascontiguousarray(np.roll(image[..., ::-1], 2 * k, axis=1)))
+    writer.release()
+
+
+def test_predict_streams_a_folder_and_a_video_and_writes_every_output(
+    model_dir, data_dir, tmp_path
+):
+    paths = load_lsp(split="test").image_paths[:3]
+    folder = tmp_path / "photos"
+    (folder / "more").mkdir(parents=True)
+    (folder / "a.jpg").write_bytes(paths[0].read_bytes())
+    (folder / "more" / "b").write_bytes(paths[1].read_bytes())  # found by content
+    (folder / "broken.jpg").write_bytes(paths[2].read_bytes()[:300])
+    _clip(tmp_path / "clip.mp4", read_image(paths[2]))
+    out = tmp_path / "out"
+    args = ["--quiet", "predict", str(folder), str(tmp_path / "clip.mp4"), str(tmp_path / "no.jpg")]
+    args += ["--stride", "2", "--batch-size", "3", "--out", str(out), "--model-dir", str(model_dir)]
+    assert cli([*args, "--json", "--coco", "--overlay"]) == 0
+
+    lines = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
+    errors = {Path(line["source"]).name: line["error"] for line in lines if "error" in line}
+    assert set(errors) == {"broken.jpg", "no.jpg"} and "truncated" in errors["broken.jpg"]
+    done = [line for line in lines if "error" not in line]
+    assert [(Path(d["source"]).name, d["frame"]) for d in done] == [
+        ("a.jpg", None), ("b", None), ("clip.mp4", 0), ("clip.mp4", 2)
+    ]  # fmt: skip
+    person = done[0]["people"][0]
+    assert np.asarray(person["joints_3d"]).shape == (NUM_JOINTS, 3)
+    assert len(list((out / "json").iterdir())) == 4
+    assert len(list((out / "overlay").glob("*.jpg"))) == 2  # the stills; the video as MP4
+
+    coco = json.loads((out / "coco_keypoints.json").read_text())
+    assert len(coco["images"]) == 4 and len(coco["annotations"]) == 4
+    keypoints = np.asarray(coco["annotations"][0]["keypoints"]).reshape(17, 3)
+    assert (keypoints[:5, 2] == 0).all() and (keypoints[5:, 2] == 2).all()  # no face in LSP
+    # COCO's left shoulder is LSP's left shoulder
+    np.testing.assert_allclose(keypoints[5, :2], person["joints_2d"][9], atol=0.01)
+
+    sequence = np.load(out / "clip_3d.npz")
+    assert sequence["frame"].tolist() == [0, 2] and sequence["joints_3d"].shape == (2, 14, 3)
+    assert float(sequence["fps"]) == pytest.approx(12.0)
+    rows = (out / "clip_3d.csv").read_text().splitlines()
+    assert rows[0] == "frame,time_s,joint,x_mm,y_mm,z_mm" and len(rows) == 1 + 2 * NUM_JOINTS
+    video = cv2.VideoCapture(str(out / "clip_overlay.mp4"))
+    ok, frame = video.read()
+    assert ok and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 2
+    _, source = cv2.VideoCapture(str(tmp_path / "clip.mp4")).read()
+    assert frame.shape[0] == source.shape[0] and frame.shape[1] > source.shape[1]  # 3D beside
+
+
+def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
+    from ds3d.pipeline import Pipeline
+
+    pipeline = Pipeline.load(model_dir)
+    paths = load_lsp(split="test").image_paths[:2]
+    array = read_image(paths[1])
+    skipped = []
+    results = list(
+        pipeline.predict(
+            [str(paths[0]), "missing.png", array], batch_size=2, on_skip=skipped.append
+        )
+    )
+    assert [r.source for r in results] == [str(paths[0]), "array:2"]
+    assert [f.source for f in skipped] == ["missing.png"]
+    picture = results[1].plot()
+    assert picture.shape[0] == array.shape[0] and picture.shape[1] > array.shape[1]
+    assert results[1].plot(with_3d=False).shape == array.shape
+
+
+def test_predict_refuses_a_box_an_image_cannot_hold_and_goes_on(model_dir, data_dir, tmp_path):
     image = load_lsp(split="test").image_paths[0]
-    out, png = tmp_path / "result.json", tmp_path / "pose.png"
-    args = ["predict", str(image), "--bbox", "5,5,90,150", "--iterations", "1", "--out", str(out)]
-    assert cli([*args, "--render", str(png), "--model-dir", str(model_dir)]) == 0
-    report = json.loads(out.read_text())
-    (item,) = report["items"]
-    assert np.asarray(item["joints_3d"]).shape == (NUM_JOINTS, 3) and item["iterations"] == 1
-    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    out = tmp_path / "out"
+    args = ["--quiet", "predict", str(image), "--bbox", "5000,5,90,150", "--out", str(out)]
+    assert cli([*args, "--model-dir", str(model_dir)]) == 0
+    (line,) = (out / "predictions.jsonl").read_text().splitlines()
+    assert "outside" in json.loads(line)["error"]
 
 
 def test_gallery_of_photos_renders_every_photo_of_a_folder(data_dir, tmp_path):

@@ -1,0 +1,138 @@
+"""Predictions over any source, streamed in batches: what `ds3d predict` and `ds3d.predict` run.
+
+    for result in ds3d.predict("holiday/", batch_size=16):
+        print(result.source, result.people.joints_3d.shape)
+        picture = result.plot()  # (H, W, 3) uint8 RGB
+
+Sources are those of ds3d.sources (files, folders, globs, videos, webcam indices, URLs) and
+(H, W, 3) uint8 RGB arrays; images are read as batches are filled, so memory stays that of one
+batch. A source that cannot be read is skipped and handed to `on_skip`.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from ds3d.boxes import checked_box
+from ds3d.errors import InvalidBox
+from ds3d.overlay import plot
+from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
+from ds3d.sources import Frame, frames
+
+log = logging.getLogger("ds3d")
+
+
+@dataclass
+class Prediction:
+    """One image's (or video frame's) answer: the frame it came from (source, index, fps,
+    image) and its people, best first (a PipelineResult of N rows: one with people="best")."""
+
+    frame: Frame
+    people: PipelineResult
+
+    @property
+    def source(self) -> str:
+        return self.frame.source
+
+    @property
+    def image(self) -> np.ndarray:
+        return self.frame.image
+
+    def to_dict(self) -> dict:
+        """JSON-ready: source, frame index, image size and every person (PipelineResult.item)."""
+        height, width = self.image.shape[:2]
+        return {
+            "source": self.source,
+            "frame": self.frame.index,
+            "width": width,
+            "height": height,
+            "people": [self.people.item(k) for k in range(len(self.people.score))],
+        }
+
+    def plot(self, with_3d: bool = True) -> np.ndarray:
+        """The image with every person's 2D skeleton and, with_3d, their 3D skeletons on a
+        panel beside it: (H, W [+ 3H/4], 3) uint8 RGB (ds3d.overlay)."""
+        people = self.people
+        return plot(
+            self.image,
+            people.joints_2d.numpy(),
+            people.joints_3d.numpy() if with_3d else None,
+            people.confidence.numpy(),
+        )
+
+
+def _stream(sources, stride: int) -> Iterator[Frame]:
+    """Frames of paths and URLs (ds3d.sources.frames) and of arrays, in the given order."""
+    if isinstance(sources, str | os.PathLike | np.ndarray):
+        sources = [sources]
+    runs = itertools.groupby(enumerate(sources), key=lambda item: isinstance(item[1], np.ndarray))
+    for is_array, items in runs:
+        if is_array:
+            yield from (Frame(f"array:{i}", image=image) for i, image in items)
+        else:
+            yield from frames([source for _, source in items], stride)
+
+
+def _readable(stream: Iterator[Frame], bbox, on_skip) -> Iterator[Frame]:
+    """The frames that decoded (and that hold `bbox`); the others handed to on_skip."""
+    for frame in stream:
+        if frame.error is None and bbox is not None:
+            try:
+                checked_box(bbox, frame.image.shape[1], frame.image.shape[0])
+            except InvalidBox as err:
+                frame.error = str(err)
+        if frame.error is None:
+            yield frame
+        else:
+            on_skip(frame)
+
+
+def _log_skip(frame: Frame) -> None:
+    log.warning("skipped %s: %s", frame.source, frame.error)
+
+
+@functools.cache
+def _default_pipeline(device: str) -> Pipeline:
+    return Pipeline.load(device=device)
+
+
+def predict(
+    sources: Iterable | str | os.PathLike | np.ndarray,
+    pipeline: Pipeline | None = None,
+    *,
+    batch_size: int = 16,
+    stride: int = 1,
+    bbox=None,
+    people: str = "best",
+    min_score: float = MIN_SCORE,
+    iterations: int | None = None,
+    device: str = "cpu",
+    on_skip: Callable[[Frame], None] = _log_skip,
+) -> Iterator[Prediction]:
+    """A Prediction per readable image or frame of `sources`, in order, estimated `batch_size`
+    at a time by `pipeline` (default: the bundled models, loaded once per process on `device`).
+    stride: every n-th frame of a video or camera; bbox: one person box (x0, y0, x1, y1) px for
+    every image (default: people are searched for); people, min_score, iterations: as
+    Pipeline.estimate. Unreadable sources (and images that cannot hold bbox) go to `on_skip`
+    (default: a logged warning)."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    pipeline = pipeline or _default_pipeline(device)
+    readable = _readable(_stream(sources, stride), bbox, on_skip)
+    while batch := list(itertools.islice(readable, batch_size)):
+        result = pipeline.estimate(
+            [f.image for f in batch],
+            bboxes=None if bbox is None else [bbox] * len(batch),
+            iterations=iterations,
+            people=people,
+            min_score=min_score,
+        )
+        for i, frame in enumerate(batch):
+            yield Prediction(frame, result.people_of(i))
