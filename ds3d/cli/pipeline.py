@@ -151,7 +151,7 @@ def predict(args) -> int:
             out.skip(frame)
             bar.write(f"skipped {frame.source}: {frame.error}", file=sys.stderr)
 
-        for prediction in pipeline.predict(
+        predictions = pipeline.predict(
             args.sources,
             batch_size=args.batch_size,
             stride=args.stride,
@@ -160,9 +160,13 @@ def predict(args) -> int:
             min_score=MIN_SCORE if args.min_score is None else args.min_score,
             iterations=args.iterations,
             on_skip=skip,
-        ):
-            out.write(prediction)
-            bar.update()
+        )
+        try:
+            for prediction in predictions:
+                out.write(prediction)
+                bar.update()
+        except KeyboardInterrupt:  # how a webcam run ends: what was estimated is kept
+            print("interrupted", file=sys.stderr)
     print(f"{out.count} images, {len(skipped)} skipped: wrote {args.out}/", file=sys.stderr)
     return 0
 
