@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 
 from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 _quiet = False
 
@@ -28,3 +29,9 @@ def progress(iterable=None, *, total: int | None = None, desc: str = "", unit: s
         dynamic_ncols=True,
         leave=False,
     )
+
+
+def logging_above_bars():
+    """A context manager: while it lasts, the root logger's console lines are written above the
+    bars (as tqdm.write does) instead of through them; the same lines as without it."""
+    return logging_redirect_tqdm(tqdm_class=tqdm)

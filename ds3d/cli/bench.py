@@ -17,6 +17,7 @@ from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
 from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
 from ds3d.cli.pipeline import load_pipeline
+from ds3d.progress import progress
 from ds3d.skeleton import SET_NAMES
 
 
@@ -95,12 +96,14 @@ def bench_lift(args) -> int:
         lifter.lift(inputs[:batch])  # warm-up
         stages: dict[str, float] = {}
         elapsed = 0.0
-        for r in range(1, args.repeats + 1):
-            t = time.perf_counter()
-            result = lifter.lift(inputs[r * batch : (r + 1) * batch])
-            elapsed += time.perf_counter() - t
-            for stage, ms in result.timings_ms.items():
-                stages[stage] = stages.get(stage, 0.0) + ms / args.repeats
+        with progress(total=batch * args.repeats, desc=f"batch {batch}", unit="pose") as bar:
+            for r in range(1, args.repeats + 1):
+                t = time.perf_counter()
+                result = lifter.lift(inputs[r * batch : (r + 1) * batch])
+                elapsed += time.perf_counter() - t
+                for stage, ms in result.timings_ms.items():
+                    stages[stage] = stages.get(stage, 0.0) + ms / args.repeats
+                bar.update(batch)
         report["batches"][batch] = {
             "poses_per_s": round(batch * args.repeats / elapsed, 1),
             "ms_per_batch": {k: round(v, 1) for k, v in stages.items()},
@@ -126,35 +129,39 @@ def bench_retrieval(args) -> int:
     queries = benchmark_poses(lifter, args.queries) + rng.normal(0, 5, (args.queries, 14, 2))
     queries = torch.from_numpy(queries.astype(np.float32))
     exact = PoseRetriever(lifter.database, IndexConfig(kind="flat", storage="f32"), cache=False)
-    start = time.perf_counter()
-    truth = exact.search(queries, args.k)
-    report = {
-        "k": args.k,
-        "queries": args.queries,
-        "flat_ms_per_query": round(1000 * (time.perf_counter() - start) / args.queries, 2),
-        "ivf": {},
-    }
-    del exact
-    for nprobe in (int(n) for n in args.nprobe.split(",")):
+    nprobes = [int(n) for n in args.nprobe.split(",")]
+    with progress(total=args.queries * (1 + len(nprobes)), desc="retrieval", unit="query") as bar:
         start = time.perf_counter()
-        found = lifter.retriever.search(queries, args.k, nprobe)
-        elapsed = time.perf_counter() - start
-        recall = {
-            name: float(
-                np.mean(
-                    [
-                        len(set(f.tolist()) & set(t.tolist())) / args.k
-                        for f, t in zip(found[:, s], truth[:, s], strict=True)
-                    ]
+        truth = exact.search(queries, args.k)
+        report = {
+            "k": args.k,
+            "queries": args.queries,
+            "flat_ms_per_query": round(1000 * (time.perf_counter() - start) / args.queries, 2),
+            "ivf": {},
+        }
+        del exact
+        bar.update(args.queries)
+        for nprobe in nprobes:
+            start = time.perf_counter()
+            found = lifter.retriever.search(queries, args.k, nprobe)
+            elapsed = time.perf_counter() - start
+            bar.update(args.queries)
+            recall = {
+                name: float(
+                    np.mean(
+                        [
+                            len(set(f.tolist()) & set(t.tolist())) / args.k
+                            for f, t in zip(found[:, s], truth[:, s], strict=True)
+                        ]
+                    )
                 )
-            )
-            for s, name in enumerate(SET_NAMES)
-        }
-        report["ivf"][nprobe] = {
-            "ms_per_query": round(1000 * elapsed / args.queries, 2),
-            "recall": {k: round(v, 3) for k, v in recall.items()},
-        }
-        print(f"nprobe {nprobe}: {report['ivf'][nprobe]}", file=sys.stderr)
+                for s, name in enumerate(SET_NAMES)
+            }
+            report["ivf"][nprobe] = {
+                "ms_per_query": round(1000 * elapsed / args.queries, 2),
+                "recall": {k: round(v, 3) for k, v in recall.items()},
+            }
+            bar.write(f"nprobe {nprobe}: {report['ivf'][nprobe]}", file=sys.stderr)
     print(f"flat: {report['flat_ms_per_query']} ms/query (5 sets)", file=sys.stderr)
     write_report(report, args.out)
     return 0
@@ -169,10 +176,12 @@ def bench_2d(args) -> int:
         for batch in (1, 16):
             est.estimate(images[:batch])  # warm-up
             steps = {"features": 0.0, "traversal": 0.0, "jointnet": 0.0, "psm": 0.0, "total": 0.0}
-            for _ in range(args.repeats):
-                res = est.estimate(images[:batch])
-                for k in steps:
-                    steps[k] += res.timings[k]
+            with progress(total=args.repeats * batch, desc=f"{label} x{batch}", unit="img") as bar:
+                for _ in range(args.repeats):
+                    res = est.estimate(images[:batch])
+                    for k in steps:
+                        steps[k] += res.timings[k]
+                    bar.update(batch)
             n = args.repeats * batch
             rows.append(
                 {
@@ -209,10 +218,12 @@ def bench_pipeline(args) -> int:
     for batch in sizes:
         pipeline.estimate(images[:batch])  # warm-up
         stages: dict[str, float] = {}
-        for _ in range(args.repeats):
-            res = pipeline.estimate(images[:batch])
-            for stage, ms in res.timings_ms.items():
-                stages[stage] = stages.get(stage, 0.0) + ms
+        with progress(total=args.repeats * batch, desc=f"batch {batch}", unit="img") as bar:
+            for _ in range(args.repeats):
+                res = pipeline.estimate(images[:batch])
+                for stage, ms in res.timings_ms.items():
+                    stages[stage] = stages.get(stage, 0.0) + ms
+                bar.update(batch)
         n = args.repeats * batch
         rows.append(
             {

@@ -17,6 +17,7 @@ from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_setup
 from ds3d.image2d.params import EstimatorParams, InferenceParams
 from ds3d.paths import project_relative
+from ds3d.progress import logging_above_bars
 from ds3d.training.config import TrainConfig
 from ds3d.training.image2d import CHECKPOINT_DIR, train
 from ds3d.training.images import training_annotations
@@ -113,7 +114,8 @@ def cmd_train(args) -> int:
     overrides = field_overrides(EstimatorParams, args.set)
     params = EstimatorParams(**{"observer_labels": args.observer_labels, **overrides})
     evaluate = None if args.no_eval else (lambda d: evaluate_validation(d, cfg))
-    manifest = train(cfg, params, args.out, evaluate=evaluate, resume=args.resume)
+    with logging_above_bars():
+        manifest = train(cfg, params, args.out, evaluate=evaluate, resume=args.resume)
     print(json.dumps({k: manifest[k] for k in ("train_seconds", "metrics")}, indent=2))
     return 0
 
@@ -134,7 +136,8 @@ def cmd_train_jointnet(args) -> int:
     checkpoint = args.model / CHECKPOINT_DIR / "jointnet.pt"
     if not args.resume:
         checkpoint.unlink(missing_ok=True)
-    state, seconds = fit_jointnet(training_annotations(cfg)[0], params, cfg, checkpoint)
+    with logging_above_bars():
+        state, seconds = fit_jointnet(training_annotations(cfg)[0], params, cfg, checkpoint)
     manifest = replace_jointnet(args.model, state, cfg.jointnet_shape(), asdict(cfg), seconds)
     shutil.rmtree(args.model / CHECKPOINT_DIR)
     if not args.no_eval:

@@ -251,7 +251,9 @@ def eval_lsp_pipeline(args) -> int:
     ann = ann.subset(range(args.start, len(ann), args.every))
     if args.limit is not None:
         ann = ann.subset(range(min(args.limit, len(ann))))
-    results = evaluate_refinement(pipeline, ann, names, overrides, args.batch, args.searched)
+    results = evaluate_refinement(
+        pipeline, ann, names, overrides, args.batch, searched=args.searched
+    )
     split = "test im1001-im2000" if args.split == "test" else "train im0001-im1000"
     report = {
         "dataset": f"LSP {split}, images [{args.start}::{args.every}] of the split",

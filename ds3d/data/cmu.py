@@ -28,6 +28,7 @@ import numpy as np
 from ds3d.data.bvh import BvhMotion, global_transforms, read_bvh
 from ds3d.errors import DataFormatError
 from ds3d.paths import data_root
+from ds3d.progress import progress
 from ds3d.skeleton import (
     CMU_BVH_TO_LSP,
     H36M17_TO_LSP,
@@ -205,7 +206,7 @@ def load_cmu_poses(
     """
     files = bvh_files(data_root() / "cmu_bvh" if source is None else source)
     clips = []
-    for path in files:
+    for path in progress(files, desc="BVH files", unit="file"):
         motion = read_bvh(path)
         frames = subsample_indices(motion.num_frames, motion.frame_time, fps)
         clips.append(cmu_joints(motion, frames))

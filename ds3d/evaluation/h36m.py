@@ -22,6 +22,7 @@ from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_se
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
 from ds3d.lifter import PAPER_OVERRIDES
+from ds3d.progress import progress
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
 
 
@@ -90,14 +91,19 @@ def perturb(
     return out.astype(np.float32)
 
 
-def lift_all(lifter, cases: ProtocolCases, joints_2d: np.ndarray, batch_size: int = 64):
-    """Lift every case in batches. Returns the 3D poses (N, 14, 3) and chosen sets (N,)."""
+def lift_all(
+    lifter, cases: ProtocolCases, joints_2d: np.ndarray, batch_size: int = 64, desc: str = "lift"
+):
+    """Lift every case in batches (a progress bar named `desc`). Returns the 3D poses
+    (N, 14, 3) and chosen sets (N,)."""
     poses, sets = [], []
-    for start in range(0, len(cases), batch_size):
-        part = slice(start, start + batch_size)
-        result = lifter.lift(joints_2d[part], intrinsics=cases.intrinsics[part])
-        poses.append(result.joints_3d.numpy())
-        sets.extend(result.joint_set)
+    with progress(total=len(cases), desc=desc, unit="pose") as bar:
+        for start in range(0, len(cases), batch_size):
+            part = slice(start, start + batch_size)
+            result = lifter.lift(joints_2d[part], intrinsics=cases.intrinsics[part])
+            poses.append(result.joints_3d.numpy())
+            sets.extend(result.joint_set)
+            bar.update(len(poses[-1]))
     return np.concatenate(poses), np.array(sets)
 
 
@@ -120,10 +126,12 @@ def score(pred: np.ndarray, cases: ProtocolCases, sets: np.ndarray | None = None
     return report
 
 
-def evaluate(lifter, cases: ProtocolCases, noise_px=0.0, outlier_px=0.0, seed=0, batch_size=64):
+def evaluate(
+    lifter, cases: ProtocolCases, noise_px=0.0, outlier_px=0.0, seed=0, batch_size=64, desc="lift"
+):
     """The protocol end to end for one input variant: a JSON-ready report."""
     joints_2d = perturb(cases.joints_2d, noise_px, outlier_px, seed)
-    pred, sets = lift_all(lifter, cases, joints_2d, batch_size)
+    pred, sets = lift_all(lifter, cases, joints_2d, batch_size, desc)
     return score(pred, cases, sets)
 
 
@@ -159,6 +167,6 @@ def evaluate_variant(lifter, cases: ProtocolCases, name: str, base_config) -> di
     perturbation, overrides = VARIANTS[name]
     lifter.configure(dataclasses.replace(base_config, **overrides))
     start = time.perf_counter()
-    report = evaluate(lifter, cases, **perturbation)
+    report = evaluate(lifter, cases, **perturbation, desc=name)
     report["seconds"] = round(time.perf_counter() - start, 1)
     return report

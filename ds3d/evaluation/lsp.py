@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
 
 import torch
 
@@ -19,6 +18,7 @@ from ds3d.image2d.result import Estimate2D
 from ds3d.image_io import read_image
 from ds3d.lifter import LifterConfig
 from ds3d.pipeline import Pipeline, PipelineConfig
+from ds3d.progress import progress
 from ds3d.skeleton import JOINT_NAMES
 
 # The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
@@ -30,8 +30,6 @@ REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
     "energy": ({"iterations": 1, "selection": "energy"}, {"weighting": False}),
     "posterior": ({"iterations": 1}, {"weighting": False}),
 }
-
-Progress = Callable[[int, int], None]  # (images done, images in all)
 
 
 def pck_report(pred: torch.Tensor, gt: torch.Tensor, per_joint: bool = False) -> dict:
@@ -61,11 +59,13 @@ def evaluate_2d(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> 
     left/right decision)."""
     preds, argmax = [], []
     t0 = time.perf_counter()
-    for i in range(0, len(ann), batch):
-        images = [read_image(p) for p in ann.image_paths[i : i + batch]]
-        res = est.estimate(images)
-        preds.append(res.joints_2d)
-        argmax.append(argmax_joints(res))
+    with progress(total=len(ann), desc="lsp", unit="img") as bar:
+        for i in range(0, len(ann), batch):
+            images = [read_image(p) for p in ann.image_paths[i : i + batch]]
+            res = est.estimate(images)
+            preds.append(res.joints_2d)
+            argmax.append(argmax_joints(res))
+            bar.update(len(images))
     seconds = time.perf_counter() - t0
     gt = torch.from_numpy(ann.joints)
     out = {"n_images": len(ann), "seconds": round(seconds, 1)}
@@ -91,7 +91,6 @@ def evaluate_refinement(
     names: list[str],
     overrides: dict | None = None,
     batch: int = 16,
-    progress: Progress | None = None,
     searched: bool = False,
 ) -> dict:
     """The protocol for the 2D pose after each iteration of each of REFINEMENT_VARIANTS
@@ -103,30 +102,30 @@ def evaluate_refinement(
     overrides = overrides or {}
     preds: dict[str, list[torch.Tensor]] = {"initial": []}
     seconds = dict.fromkeys(["2d", *names, *(["searched"] if searched else [])], 0.0)
-    for start in range(0, len(ann), batch):
-        images = [read_image(p) for p in ann.image_paths[start : start + batch]]
-        if searched:
+    with progress(total=len(ann), desc="lsp-pipeline", unit="img") as bar:
+        for start in range(0, len(ann), batch):
+            images = [read_image(p) for p in ann.image_paths[start : start + batch]]
+            if searched:
+                t0 = time.perf_counter()
+                pipeline.config, lifter_config = variant_configs("full", overrides)
+                pipeline.lifter.configure(lifter_config)
+                preds.setdefault("searched", []).append(pipeline.estimate(images).joints_2d)
+                seconds["searched"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            pipeline.config, lifter_config = variant_configs("full", overrides)
-            pipeline.lifter.configure(lifter_config)
-            preds.setdefault("searched", []).append(pipeline.estimate(images).joints_2d)
-            seconds["searched"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        estimate = pipeline.estimator.estimate(images)
-        seconds["2d"] += time.perf_counter() - t0
-        preds["initial"].append(estimate.joints_2d)
-        for name in names:
-            t0 = time.perf_counter()
-            pipeline.config, lifter_config = variant_configs(name, overrides)
-            pipeline.lifter.configure(lifter_config)
-            res = pipeline.lift_estimate(estimate)
-            for t in range(res.iterations):
-                preds.setdefault(f"{name}/iteration{t + 1}", []).append(
-                    res.joints_2d_iterations[:, t]
-                )
-            seconds[name] += time.perf_counter() - t0
-        if progress is not None:
-            progress(start + len(images), len(ann))
+            estimate = pipeline.estimator.estimate(images)
+            seconds["2d"] += time.perf_counter() - t0
+            preds["initial"].append(estimate.joints_2d)
+            for name in names:
+                t0 = time.perf_counter()
+                pipeline.config, lifter_config = variant_configs(name, overrides)
+                pipeline.lifter.configure(lifter_config)
+                res = pipeline.lift_estimate(estimate)
+                for t in range(res.iterations):
+                    preds.setdefault(f"{name}/iteration{t + 1}", []).append(
+                        res.joints_2d_iterations[:, t]
+                    )
+                seconds[name] += time.perf_counter() - t0
+            bar.update(len(images))
     gt = torch.from_numpy(ann.joints)
     return {
         "variants": {n: describe_variant(*variant_configs(n, overrides)) for n in names},

@@ -21,6 +21,7 @@ import torch
 from ds3d.errors import DataFormatError
 from ds3d.mocap.normalize import normalize_2d, normalize_3d
 from ds3d.mocap.views import rotate, view_rotations
+from ds3d.progress import progress
 from ds3d.skeleton import JOINT_SETS, NUM_JOINTS
 
 
@@ -35,25 +36,27 @@ def deduplicate(poses: np.ndarray, threshold_mm: float, chunk: int = 4096) -> np
     limit = threshold_mm**2 * NUM_JOINTS  # squared L2 in R^42
     kept_index = faiss.IndexFlatL2(flat.shape[1])
     kept: list[np.ndarray] = []
-    for start in range(0, len(flat), chunk):
-        block = flat[start : start + chunk]
-        if kept_index.ntotal:
-            nearest, _ = kept_index.search(block, 1)
-            fresh = np.flatnonzero(nearest[:, 0] >= limit)
-        else:
-            fresh = np.arange(len(block))
-        # Greedy within the block: consecutive mocap frames are the closest pairs.
-        block_t = torch.from_numpy(block[fresh])
-        dist = torch.cdist(block_t, block_t).square_() < limit
-        taken = torch.zeros(len(fresh), dtype=torch.bool)
-        alive = torch.ones(len(fresh), dtype=torch.bool)
-        for i in range(len(fresh)):
-            if alive[i]:
-                taken[i] = True
-                alive &= ~dist[i]
-        chosen = fresh[taken.numpy()]
-        kept_index.add(block[chosen])
-        kept.append(start + chosen)
+    with progress(total=len(flat), desc="dedupe", unit="pose") as bar:
+        for start in range(0, len(flat), chunk):
+            block = flat[start : start + chunk]
+            if kept_index.ntotal:
+                nearest, _ = kept_index.search(block, 1)
+                fresh = np.flatnonzero(nearest[:, 0] >= limit)
+            else:
+                fresh = np.arange(len(block))
+            # Greedy within the block: consecutive mocap frames are the closest pairs.
+            block_t = torch.from_numpy(block[fresh])
+            dist = torch.cdist(block_t, block_t).square_() < limit
+            taken = torch.zeros(len(fresh), dtype=torch.bool)
+            alive = torch.ones(len(fresh), dtype=torch.bool)
+            for i in range(len(fresh)):
+                if alive[i]:
+                    taken[i] = True
+                    alive &= ~dist[i]
+            chosen = fresh[taken.numpy()]
+            kept_index.add(block[chosen])
+            kept.append(start + chosen)
+            bar.update(len(block))
     return np.concatenate(kept).astype(np.int64)
 
 

@@ -23,6 +23,7 @@ import torch
 
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
+from ds3d.progress import progress
 from ds3d.skeleton import JOINT_SETS, SET_NAMES
 
 
@@ -83,7 +84,8 @@ class PoseRetriever:
     def __init__(self, db: PoseDatabase, config: IndexConfig = IndexConfig(), cache: bool = True):
         self.db = db
         self.config = config
-        self.indices = [self._load_or_build(name, cache) for name in SET_NAMES]
+        sets = progress(SET_NAMES, desc="pose indices", unit="set")
+        self.indices = [self._load_or_build(name, cache) for name in sets]
 
     def _load_or_build(self, joint_set: str, cache: bool):
         settings = "-".join(f"{k}{v}" for k, v in asdict(self.config).items())

@@ -29,6 +29,7 @@ from ds3d.image2d.features import (
 from ds3d.image2d.forest import Forest
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
+from ds3d.progress import progress
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
@@ -87,12 +88,14 @@ def grow_layer(
     cfg: TrainConfig,
     params: EstimatorParams,
     rng: np.random.Generator,
+    desc: str = "trees",
 ) -> Forest:
     """Grow one cascade layer. items: (annotation index, flipped) pairs the layer may use;
-    contexts: cascade_contexts per item for a context layer, None for layer 1."""
+    contexts: cascade_contexts per item for a context layer, None for layer 1; desc: the
+    progress bar's name."""
     n_ctx = 0 if contexts is None else next(iter(contexts.values())).shape[1]
     trees = []
-    for t in range(n_trees):
+    for t in progress(range(n_trees), desc=desc, unit="tree"):
         t0 = time.perf_counter()
         pool = sample_pool(rng, cfg.pool_size, cfg.radius, NUM_IMAGE_CHANNELS, n_ctx)
         chosen = rng.choice(len(items), min(cfg.images_per_tree, len(items)), replace=False)
@@ -146,7 +149,7 @@ def cascade_contexts(
     (1, C, gh, gw) float32 of the last layer's probabilities, rounded to float16 first (the
     layer 2 of the bundled model was grown on float16 maps; the rounding keeps it reproducible)."""
     out = {}
-    for item in items:
+    for item in progress(items, desc="layer inputs", unit="img"):
         sample = load_training_image(ann, item[0], item[1], params)
         ch = image_channels(torch.from_numpy(sample.image)[None])
         probs = cascade_probs(layers, ch, params, mixtures=mixtures)[-1]
@@ -188,7 +191,8 @@ def grow_cascade(
             log.info(
                 "layer-%d inputs of %d images: %.1fs", depth, len(share), time.perf_counter() - t0
             )
-        layers.append(grow_layer(ann, share, contexts, n_trees, cfg, params, rng))
+        desc = f"layer {depth} trees"
+        layers.append(grow_layer(ann, share, contexts, n_trees, cfg, params, rng, desc))
         timings[f"layer{depth}"] = time.perf_counter() - t0
         if saved is not None:
             state = {

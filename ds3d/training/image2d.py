@@ -27,6 +27,7 @@ from torch import Tensor
 from ds3d.data.lsp import PoseAnnotations
 from ds3d.image2d.model_files import record_metrics, save_model
 from ds3d.image2d.params import EstimatorParams
+from ds3d.progress import set_quiet
 from ds3d.training.config import TrainConfig
 from ds3d.training.facing import fit_facing
 from ds3d.training.forests import grow_cascade
@@ -44,8 +45,10 @@ def fit_on_one_thread(
 ) -> tuple[dict[str, Tensor], float]:
     """fit_facing or fit_jointnet on one torch thread (train runs each in a worker process
     beside the forests): the state dict and the seconds it took. One thread, because the
-    result depends on the thread count (the order in which gradients are summed)."""
+    result depends on the thread count (the order in which gradients are summed). No progress
+    bar here: the terminal shows the forests'; the network's log lines still come."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(message)s")
+    set_quiet(True)
     torch.set_num_threads(1)
     return fit(ann, params, cfg)
 

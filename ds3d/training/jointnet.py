@@ -30,6 +30,7 @@ from ds3d.image2d.facing import crop
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet, JointNetShape
 from ds3d.image2d.params import EstimatorParams
+from ds3d.progress import progress
 from ds3d.skeleton import FLIP, NUM_JOINTS
 from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
@@ -126,7 +127,7 @@ def train_jointnet(
         first, seconds = _resume(checkpoint, run, net, opt, schedule)
         log.info("jointnet: resumed after epoch %d from %s", first, checkpoint)
     net.train()
-    for epoch in range(first, epochs):
+    for epoch in progress(range(first, epochs), desc="jointnet", unit="epoch"):
         t0 = time.perf_counter()
         total = 0.0
         for rows in torch.randperm(len(windows)).split(BATCH):
@@ -183,7 +184,7 @@ def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Ten
     windows = torch.empty(len(ann), 3, size, size, dtype=torch.float16)
     joints = torch.empty(len(ann), NUM_JOINTS, 2)
     located = torch.from_numpy(ann.located.copy())
-    for i in range(len(ann)):
+    for i in progress(range(len(ann)), desc="jointnet windows", unit="img"):
         sample = load_training_image(ann, i, False, params)
         pts = torch.from_numpy(sample.joints)
         known = pts[located[i]] if located[i].sum() >= 2 else pts
