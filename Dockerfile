@@ -19,18 +19,19 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"
 
 WORKDIR /app
-# Dependencies first, read from pyproject.toml (a layer that survives code edits), then the code,
-# then the models.
+# Dependencies first, read from pyproject.toml (a layer that survives code edits), then the
+# models and the code.
 COPY pyproject.toml README.md ./
 RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
 print('\n'.join(p['dependencies'] + p['optional-dependencies']['service']))" > /tmp/requirements.txt \
     && pip install --no-cache-dir -r /tmp/requirements.txt \
     && useradd --create-home --uid 10001 --user-group ds3d
+# The models before the code (they change less often); both before the install, which maps the
+# package ds3d.models onto models/ (pyproject.toml). Editable, so that the image holds one copy.
+COPY models models
 COPY ds3d ds3d
 COPY service service
-# Editable, so that ds3d finds its bundled models/ beside the package as in a checkout.
 RUN pip install --no-cache-dir --no-deps -e .
-COPY models models
 
 USER 10001:10001
 # Build the retrieval indexes once, into the image (the user's cache), so replicas start fast.

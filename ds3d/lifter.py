@@ -31,7 +31,7 @@ from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
 from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
-from ds3d.paths import MODELS_DIR
+from ds3d.paths import MODELS_DIR, require_models
 from ds3d.skeleton import SET_NAMES, hip_midpoint, joint_set_mask
 from ds3d.timing import stage_timer
 
@@ -158,7 +158,7 @@ class Lifter:
         """The pose database `model_dir`/`database` (default: models/posedb, from Human3.6M;
         models/posedb-cmu holds the CMU one)."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
-        return cls(PoseDatabase.load(directory / database), config, device)
+        return cls(PoseDatabase.load(require_models(directory / database)), config, device)
 
     @torch.inference_mode()  # no autograd anywhere: a third less overhead per op at batch 1
     def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:

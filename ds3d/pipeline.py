@@ -202,9 +202,11 @@ class Pipeline:
         image2d: str = "image2d",
     ) -> Pipeline:
         """The models of `model_dir` (default models/): the 2D stage in `image2d`, the pose
-        database in `database`. Raises DataFormatError when either is missing or malformed."""
+        database in `database`; on `device` the 3D stage and the 2D stage's joint network (its
+        forests and PSM run on the CPU). Raises DataFormatError when either is missing or
+        malformed."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
-        estimator = PoseEstimator2D.load(directory / image2d)
+        estimator = PoseEstimator2D.load(directory / image2d, device)
         lifter_config = LifterConfig() if lifter_config is None else lifter_config
         lifter = Lifter.load(directory, device=device, config=lifter_config, database=database)
         return cls(estimator, lifter, config)

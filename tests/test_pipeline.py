@@ -192,3 +192,14 @@ def test_bundled_model_refinement_does_not_make_2d_notably_worse(data_dir):
     assert error <= float(pixel_error(initial, gt).mean()) + ERROR_TOLERANCE_PX
     assert float(pck(refined, gt).mean()) >= REFINED_PCK - MARGIN
     assert bool(torch.isfinite(torch.cat([r.joints_3d for r in results])).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_the_pipeline_runs_on_cuda_as_on_the_cpu(model_dir, images):
+    """device="cuda": the joint network and the 3D stage on the GPU; about the same poses (the
+    network's bfloat16 convolutions differ between the devices in their last bits)."""
+    on_cpu = Pipeline.load(model_dir).estimate(images[:2])
+    on_gpu = Pipeline.load(model_dir, device="cuda").estimate(images[:2])
+    assert on_gpu.joints_2d.device.type == "cpu" and on_gpu.joints_3d.device.type == "cpu"
+    assert float((on_gpu.joints_2d - on_cpu.joints_2d).abs().median()) < 2.0  # px
+    assert float((on_gpu.joints_3d - on_cpu.joints_3d).norm(dim=-1).median()) < 20.0  # mm

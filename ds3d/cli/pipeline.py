@@ -52,7 +52,10 @@ def register(commands, evals, benches) -> None:
         "video (2D over the frame, 3D beside it)",
     )
     p.add_argument(
-        "--device", choices=("cpu", "cuda"), default="cpu", help="where the 3D stage runs"
+        "--device",
+        choices=("cpu", "cuda"),
+        default="cpu",
+        help="where the joint network and the 3D stage run",
     )
     add_model_options(p, threads=min(2, os.cpu_count() or 1))
     p.set_defaults(func=predict)

@@ -50,7 +50,7 @@ from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
 from ds3d.image2d.search import Proposals, SearchParams, propose
-from ds3d.paths import MODELS_DIR
+from ds3d.paths import MODELS_DIR, require_models
 from ds3d.threads import map_on_threads, split_rows
 
 
@@ -80,12 +80,14 @@ class PoseEstimator2D:
         self._layers_of: dict[int, list[Forest]] = {}  # the layers cut short, per tree count
 
     @classmethod
-    def load(cls, model_dir: Path | str | None = None) -> PoseEstimator2D:
-        """The model in `model_dir` (default: models/image2d; ds3d.image2d.model_files).
+    def load(cls, model_dir: Path | str | None = None, device: str = "cpu") -> PoseEstimator2D:
+        """The model in `model_dir` (default: models/image2d; ds3d.image2d.model_files), its
+        joint network on `device` (the forests, the PSM and the rest stay on the CPU).
         Raises DataFormatError when it is missing or malformed."""
         model_dir = Path(model_dir) if model_dir is not None else MODELS_DIR / "image2d"
-        model = load_model(model_dir)
-        return cls(model.layers, model.mixtures, model.params, model.facing, model.jointnet)
+        model = load_model(require_models(model_dir))
+        jointnet = None if model.jointnet is None else model.jointnet.to(device)
+        return cls(model.layers, model.mixtures, model.params, model.facing, jointnet)
 
     def scales(self) -> list[float]:
         p = self.params

@@ -144,15 +144,17 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
     extend past their images (its effect: docs/RESULTS.md): lab (B, 3, H, W) Lab / 100 ->
     (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. Computed in
-    the network's dtype: bfloat16 as load_jointnet leaves it on a CPU that computes it
-    (CPU_BFLOAT16), or a float32 network under bfloat16 autocast there, as trained."""
+    the network's dtype and on its device: bfloat16 as load_jointnet leaves it on a CPU that
+    computes it (CPU_BFLOAT16), or a float32 network under bfloat16 autocast there, as trained;
+    returned on the CPU."""
     padded = F.pad(lab, (MARGIN, MARGIN, MARGIN, MARGIN))
-    dtype = next(net.parameters(), lab).dtype
-    autocast = dtype == torch.float32 and lab.is_cpu and CPU_BFLOAT16
+    weight = next(net.parameters(), lab)
+    autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
-        padded = padded.to(dtype, memory_format=torch.channels_last)
-        return net(padded).float().contiguous()
+        padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)
+        # back on the CPU, where the cascade and the PSM read it
+        return net(padded).float().cpu().contiguous()
 
 
 def logits_to_grid(
