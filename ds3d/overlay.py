@@ -24,6 +24,13 @@ def limb_colour(child: int) -> tuple[int, int, int]:
     return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT
 
 
+def draw_limbs(canvas: np.ndarray, points: np.ndarray, thickness: int) -> None:
+    """One skeleton's limbs onto canvas (H, W, 3) uint8, in place: points (14, 2) int px."""
+    for child, parent in LIMBS:
+        start, end = tuple(points[child]), tuple(points[parent])
+        cv2.line(canvas, start, end, limb_colour(child), thickness, cv2.LINE_AA)
+
+
 def draw_2d(image: np.ndarray, joints_2d: np.ndarray, confidence: np.ndarray | None = None):
     """image (H, W, 3) uint8 RGB; joints_2d (P, 14, 2) px, one skeleton per person; confidence
     (P, 14) in [0, 1] or None. Returns a drawn copy of the image."""
@@ -33,15 +40,7 @@ def draw_2d(image: np.ndarray, joints_2d: np.ndarray, confidence: np.ndarray | N
     thickness = max(1, round(max(out.shape[:2]) / 250))
     for person, person_sure in zip(people, sure.reshape(people.shape[:2]), strict=True):
         points = np.round(person).astype(np.int32)
-        for child, parent in LIMBS:
-            cv2.line(
-                out,
-                tuple(points[child]),
-                tuple(points[parent]),
-                limb_colour(child),
-                thickness,
-                cv2.LINE_AA,
-            )
+        draw_limbs(out, points, thickness)
         for point, p in zip(points, person_sure, strict=True):
             shade = int(255 * float(np.clip(p, 0, 1)))
             cv2.circle(out, tuple(point), thickness + 1, (shade, shade, shade), -1, cv2.LINE_AA)
@@ -71,15 +70,7 @@ def draw_3d(joints_3d: np.ndarray, height: int, width: int, azimuth: float = 35.
     cv2.line(panel, (0, floor), (width - 1, floor), (190, 190, 190), 1, cv2.LINE_AA)
     thickness = max(1, round(min(height, width) / 200))
     for person in np.round(points).astype(np.int32):
-        for child, parent in LIMBS:
-            cv2.line(
-                panel,
-                tuple(person[child]),
-                tuple(person[parent]),
-                limb_colour(child),
-                thickness,
-                cv2.LINE_AA,
-            )
+        draw_limbs(panel, person, thickness)
     return panel
 
 
