@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from ds3d.data.lsp import load_lsp
+from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
 from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.image_io import read_image
@@ -203,3 +204,10 @@ def test_the_pipeline_runs_on_cuda_as_on_the_cpu(model_dir, images):
     assert on_gpu.joints_2d.device.type == "cpu" and on_gpu.joints_3d.device.type == "cpu"
     assert float((on_gpu.joints_2d - on_cpu.joints_2d).abs().median()) < 2.0  # px
     assert float((on_gpu.joints_3d - on_cpu.joints_3d).norm(dim=-1).median()) < 20.0  # mm
+
+
+def test_a_box_the_image_cannot_hold_is_refused_before_any_work(pipeline, images):
+    width = images[0].shape[1]
+    for box, why in [((10, 10, 5, 40), "no area"), ((width + 1, 0, width + 9, 9), "outside")]:
+        with pytest.raises(InvalidBox, match=why):
+            pipeline.estimate(images[:1], bboxes=[box])
