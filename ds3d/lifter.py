@@ -38,13 +38,15 @@ from ds3d.timing import stage_timer
 
 @dataclass(frozen=True)
 class LifterConfig:
-    """Algorithm parameters; the defaults are the paper's (K, K_w, PCA, omegas)."""
+    """Algorithm parameters: the paper's K and omegas; K_w, the PCA's size and the prior on the
+    proportions chosen by leave-one-subject-out on the training subjects (docs/RESULTS.md, how
+    parameters were chosen; the paper's K_w = 64 and 18 components: PAPER_OVERRIDES)."""
 
     neighbours: int = 256  # K
     nprobe: int = 8  # IVF lists searched: near-exact neighbours (docs/RESULTS.md, retrieval)
-    weighted_neighbours: int = 64  # K_w; equal to K for the unweighted variant
+    weighted_neighbours: int = 128  # K_w; equal to K for the unweighted variant
     weighting: bool = True  # False: all K neighbours with weight 1 (the paper's ablation)
-    pca_components: int = 18
+    pca_components: int = 20
     joint_sets: tuple[str, ...] = SET_NAMES  # ("all",) for the single-set ablation
     omega: EnergyWeights = field(default_factory=EnergyWeights)
     # eq:projerr1 on the nearest neighbours only: M is six numbers, which a few dozen poses
@@ -60,13 +62,23 @@ class LifterConfig:
     # visible (the others are no better then: docs/RESULTS.md, the joint-set ablation), else the
     # sets without a hidden joint; "always": every set for every pose, as the paper.
     partial_sets: str = "needed"
+    # eq:energyS's pairwise terms (E_r, E_a of each neighbour against the others) on the best
+    # weighted this many of the K_w: their cost grows as the square of the neighbours
+    selection_neighbours: int = 64
     index: IndexConfig = field(default_factory=IndexConfig)
 
 
-# The paper's algorithm without ds3d's departures for speed and proportions, the ablations'
-# reference: every set scored for every pose, the projection fitted to all K neighbours, the
-# database's proportions. dataclasses.replace(LifterConfig(), **PAPER_OVERRIDES).
-PAPER_OVERRIDES = {"partial_sets": "always", "projection_neighbours": 256, "proportions": False}
+# The paper's algorithm without ds3d's departures for speed, accuracy and proportions, the
+# ablations' reference: every set scored for every pose, the projection fitted to all K
+# neighbours, K_w = 64, 18 components, the database's proportions.
+# dataclasses.replace(LifterConfig(), **PAPER_OVERRIDES).
+PAPER_OVERRIDES = {
+    "partial_sets": "always",
+    "projection_neighbours": 256,
+    "weighted_neighbours": 64,
+    "pca_components": 18,
+    "proportions": False,
+}
 
 
 @dataclass(frozen=True)
@@ -259,8 +271,12 @@ class Lifter:
         return energies, torch.where(usable, energies, torch.inf).argmin(-1)
 
     def _set_energies(self, kept, weights, kept_residuals, params, problems: Query):
-        """eq:energyS of P (pose, set) problems: kept (P, K_w, 14, 3); weights, kept_residuals
-        (P, K_w); params (P, 6); problems: the P poses. Returns (P,)."""
+        """eq:energyS of P (pose, set) problems: kept (P, K_w, 14, 3), best weighted first
+        (without weighting: nearest first);
+        weights, kept_residuals (P, K_w); params (P, 6); problems: the P poses. Scored on the
+        first config.selection_neighbours. Returns (P,)."""
+        n = self.config.selection_neighbours
+        kept, weights, kept_residuals = kept[:, :n], weights[:, :n], kept_residuals[:, :n]
         if self.config.select_on_all_joints:
             kept_residuals = projection_energy(
                 project(kept, params, problems.frame),

@@ -149,7 +149,7 @@ VARIANTS: dict[str, tuple[dict, dict]] = {
         {"outlier_px": 40.0},
         {**EVERY_SET, "select_on_all_joints": False},
     ),
-    "unweighted": ({}, {"weighting": False}),
+    "unweighted": ({}, {"weighting": False, "selection_neighbours": 256}),
     "database-proportions": ({}, {"proportions": False}),
     "database-proportions-noise10": ({"noise_px": 10.0}, {"proportions": False}),
     "paper": ({}, PAPER_OVERRIDES),

@@ -22,13 +22,14 @@ from ds3d.progress import progress
 from ds3d.skeleton import JOINT_NAMES
 
 # The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
-# weighting) and the full method (K = 256 -> K_w = 64 weighted, PipelineConfig's iterations), as
-# (PipelineConfig fields, LifterConfig fields).
+# weighting, eq:energyS on all of them) and the full method (K = 256 -> K_w weighted,
+# PipelineConfig's iterations), as (PipelineConfig fields, LifterConfig fields).
+UNWEIGHTED = {"weighting": False, "selection_neighbours": 256}
 REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
     "full": ({}, {}),
-    "all-only": ({"iterations": 1}, {"joint_sets": ("all",), "weighting": False}),
-    "energy": ({"iterations": 1, "selection": "energy"}, {"weighting": False}),
-    "posterior": ({"iterations": 1}, {"weighting": False}),
+    "all-only": ({"iterations": 1}, {"joint_sets": ("all",), **UNWEIGHTED}),
+    "energy": ({"iterations": 1, "selection": "energy"}, UNWEIGHTED),
+    "posterior": ({"iterations": 1}, UNWEIGHTED),
 }
 
 

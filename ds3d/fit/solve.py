@@ -107,13 +107,13 @@ def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
 class EnergyWeights:
     """omega_p, omega_r, omega_a of eq:energyMin (the paper's values), and omega_g, the weight
     of the prior on the person's bone-group scales: omega_g * sum_g (log scale_g / sd_g)^2,
-    sd_g from ds3d.fit.bones.GROUP_LOG_SD normalised to an RMS of one (omega_g chosen on S9 with
-    a database without S9: docs/RESULTS.md)."""
+    sd_g from ds3d.fit.bones.GROUP_LOG_SD normalised to an RMS of one (omega_g chosen by
+    leave-one-subject-out on the training subjects: docs/RESULTS.md)."""
 
     projection: float = 0.55
     retrieval: float = 0.35
     anthropometric: float = 0.065
-    proportions: float = 0.25
+    proportions: float = 0.5
 
 
 def fit_pose(
