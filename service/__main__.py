@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
+        limit_concurrency=settings.max_connections,
+        timeout_keep_alive=settings.keep_alive_s,
+        h11_max_incomplete_event_size=settings.max_header_bytes,
         # Let in-flight requests finish (they are bounded by the request timeout).
         timeout_graceful_shutdown=int(settings.request_timeout_s) + 5,
     )

@@ -1,12 +1,19 @@
 """Prometheus metrics of one app instance (its own registry, so that several apps, as in the
 tests, do not collide): requests by route and status, latency, queue depth, batch sizes and
-per-stage model time."""
+per-stage model time, and the process's own (memory, open files, CPU time)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    ProcessCollector,
+    generate_latest,
+)
 
 from service.batching import BatchStats
 
@@ -17,6 +24,8 @@ BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 class Metrics:
     def __init__(self):
         self.registry = CollectorRegistry()
+        # the process's memory, open files and CPU time (process_*; Linux), which a soak watches
+        ProcessCollector(registry=self.registry)
         self.requests = Counter(
             "ds3d_requests",
             "HTTP requests answered, by route template and status code",

@@ -89,6 +89,21 @@ class Settings(BaseSettings):
     max_lift_items: int = Field(
         256, ge=1, description="Upper bound of items in one /v1/lift request."
     )
+    max_connections: int = Field(
+        1024,
+        ge=1,
+        description="Connections uvicorn serves at once (its limit_concurrency); past it a new "
+        "request gets 503 from uvicorn, before the queues see it.",
+    )
+    keep_alive_s: float = Field(
+        5.0, gt=0.0, description="Seconds an idle keep-alive connection stays open (uvicorn)."
+    )
+    max_header_bytes: int = Field(
+        16 * 1024,
+        ge=1024,
+        description="Largest request head (request line and headers) in bytes that uvicorn "
+        "reads; a larger one gets 400.",
+    )
     retry_after_s: int = Field(
         1, ge=0, description="Seconds a 503 tells the client to wait before retrying (Retry-After)."
     )

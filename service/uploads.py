@@ -69,12 +69,17 @@ async def read_pose_input(
     return PoseInput(image, box, k)
 
 
+def too_large(what: str, limit: int) -> ApiError:
+    """413, naming the setting that set the limit."""
+    return ApiError(413, "payload_too_large", f"{what} is over max_image_bytes = {limit} bytes")
+
+
 def _refuse_declared_oversize(request: Request, image_limit: int) -> None:
     """413 before reading, when the Content-Length already says the body is over the image limit
     (plus room for a multipart envelope)."""
     length = request.headers.get("content-length")
     if length and length.isdigit() and int(length) > image_limit + MULTIPART_OVERHEAD_BYTES:
-        raise ApiError(413, "payload_too_large", f"the body is over {image_limit} bytes")
+        raise too_large("the body", image_limit)
 
 
 async def _read_form_image(form: FormData, limit: int) -> bytes:
@@ -83,7 +88,7 @@ async def _read_form_image(form: FormData, limit: int) -> bytes:
     if not isinstance(upload, UploadFile):
         raise ApiError(422, "invalid_request", "multipart field 'image' (a file) missing")
     if upload.size is not None and upload.size > limit:
-        raise ApiError(413, "payload_too_large", f"the image is over {limit} bytes")
+        raise too_large("the image", limit)
     return await upload.read()
 
 
@@ -105,7 +110,7 @@ async def _read_capped_body(request: Request, limit: int) -> bytes:
     async for chunk in request.stream():
         size += len(chunk)
         if size > limit:
-            raise ApiError(413, "payload_too_large", f"the image is over {limit} bytes")
+            raise too_large("the image", limit)
         chunks.append(chunk)
     return b"".join(chunks)
 

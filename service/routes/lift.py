@@ -53,9 +53,13 @@ async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleD
     t0 = time.perf_counter()
     rt = runtime.require()
     # A request larger than the whole queue could never be taken: 413, not a 503 to retry.
-    most = min(settings.max_lift_items, settings.max_lift_queue)
+    name, most = min(
+        ("max_lift_items", settings.max_lift_items),
+        ("max_lift_queue", settings.max_lift_queue),
+        key=lambda limit: limit[1],
+    )
     if len(body.items) > most:
-        why = f"{len(body.items)} items, at most {most}"
+        why = f"{len(body.items)} items, over {name} = {most}"
         raise ApiError(413, "too_many_items", why)
     outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s)
     return LiftResponse(

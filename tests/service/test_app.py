@@ -232,7 +232,9 @@ def test_bad_images_get_json_errors(url, multipart):
     # Far over (refused on Content-Length) and just over (refused while reading).
     for extra in (70_000, 1_000):
         big = b"\xff\xd8\xff" + b"\0" * (MAX_IMAGE_BYTES + extra)
-        assert_error(post_image(url, big, multipart=multipart), 413, "payload_too_large")
+        resp = post_image(url, big, multipart=multipart)
+        assert_error(resp, 413, "payload_too_large")
+        assert "max_image_bytes" in resp.json()["error"]["message"]
     assert httpx.get(f"{url}/healthz").status_code == 200
 
 
@@ -346,7 +348,9 @@ def test_full_queue_answers_503_at_once(engine, poses):
         assert resp.headers["retry-after"] == "1"
         assert httpx.get(f"{u}/healthz").status_code == 200
         # More items than the queue holds can never fit: 413, nothing to retry.
-        assert_error(post_lift(u, {"items": [good_item(poses)] * 5}), 413, "too_many_items")
+        resp = post_lift(u, {"items": [good_item(poses)] * 5})
+        assert_error(resp, 413, "too_many_items")
+        assert "over max_lift_queue = 4" in resp.json()["error"]["message"]
         waiter.join(30)
         assert first[0].status_code == 200 and len(first[0].json()["items"]) == 4
         assert httpx.get(f"{u}/readyz").status_code == 200

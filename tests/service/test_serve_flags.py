@@ -76,6 +76,8 @@ def test_every_field_is_a_flag():
         "log_level": ("debug", "debug"),
         "max_wait_ms": ("2.5", 2.5),
         "request_timeout_s": ("3.5", 3.5),
+        "keep_alive_s": ("2.5", 2.5),
+        "max_header_bytes": ("32768", 32768),
     }
     argv, want = [], {}
     for name in FIELDS:
