@@ -19,6 +19,8 @@ PANEL_SPAN_MM = 2400.0
 
 
 def limb_colour(child: int) -> tuple[int, int, int]:
+    """RGB of the limb ending at joint `child`: the person's right red, left blue, neck and
+    head green (ds3d.render's too)."""
     if child in (NECK, HEAD_TOP):
         return CENTRE
     return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT

@@ -13,16 +13,13 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ds3d.skeleton import HEAD_TOP, JOINT_NAMES, LIMBS, NECK, NUM_JOINTS
+from ds3d import overlay
+from ds3d.skeleton import LIMBS, NUM_JOINTS
 
-RIGHT, LEFT, CENTRE = "tab:red", "tab:blue", "tab:green"
 
-
-def limb_colour(child: int) -> str:
-    """The person's right side red, left side blue, neck and head green."""
-    if child in (NECK, HEAD_TOP):
-        return CENTRE
-    return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT
+def limb_colour(child: int) -> tuple[float, float, float]:
+    """ds3d.overlay's colour of the limb ending at `child`, as matplotlib takes it."""
+    return tuple(c / 255 for c in overlay.limb_colour(child))
 
 
 def draw_2d(ax, image: np.ndarray, joints_2d: np.ndarray, initial: np.ndarray | None = None):

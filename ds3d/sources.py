@@ -163,19 +163,6 @@ def video_frames(video: str | int, stride: int = 1) -> Iterator[Frame]:
         capture.release()
 
 
-def frame_count(source: Source, stride: int = 1) -> int | None:
-    """How many frames `frames` will yield for a resolved source, where that is known without
-    reading it (None for a camera, a URL, or a video that does not say)."""
-    if source.kind in ("image", "error"):
-        return 1
-    if source.kind != "video":
-        return None
-    capture = cv2.VideoCapture(source.location)
-    count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) if capture.isOpened() else 0
-    capture.release()
-    return -(-count // stride) if count > 0 else None
-
-
 def _url_frames(url: str, stride: int, max_pixels: int) -> Iterator[Frame]:
     """An image or a video at an http(s) URL: downloaded (at most MAX_URL_BYTES), its kind found
     by content; a video is read from a temporary file, deleted after."""

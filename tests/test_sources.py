@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ds3d.sources import frame_count, frames, resolve, sniff
+from ds3d.sources import frames, resolve, sniff
 
 
 def _jpeg(path, size=(40, 30), value=128):
@@ -72,7 +72,7 @@ def test_a_video_gives_every_stride_th_frame_with_its_index_and_rate(tmp_path):
     path = tmp_path / "clip.mp4"
     _video(path)
     (source,) = resolve([path])
-    assert source.kind == "video" and frame_count(source, stride=3) == 3
+    assert source.kind == "video"
     every = list(frames([path]))
     assert [f.index for f in every] == list(range(7)) and every[0].fps == pytest.approx(10.0)
     third = list(frames([path], stride=3))
