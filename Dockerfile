@@ -1,7 +1,12 @@
 # CPU image of the ds3d service: python:3.11-slim, CPU torch pinned and installed first (so that
 # no CUDA torch is pulled in), the project with its [service] extra, the bundled models baked in,
-# a non-root user, a health check on /healthz, uvicorn (through `ds3d-serve`).
+# a non-root user, a health check on /readyz, uvicorn (through `ds3d-serve`, which runs itself
+# under jemalloc: flat memory, service/allocator.py).
 FROM python:3.11-slim
+
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libjemalloc2 \
+    && rm -rf /var/lib/apt/lists/*
 
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
@@ -37,6 +42,7 @@ USER 10001:10001
 # Build the retrieval indexes once, into the image (the user's cache), so replicas start fast.
 RUN python -c "from ds3d.lifter import Lifter; Lifter.load()"
 EXPOSE 8000
+# Healthy = ready to take work (compose starts nginx once the replicas are healthy).
 HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
-    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]
+    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/readyz', timeout=4)"]
 CMD ["ds3d-serve"]

@@ -13,6 +13,10 @@ class InvalidImage(Ds3dError, ValueError):
     """An image is empty, corrupt, not an image, or too large to decode."""
 
 
+class ImageTooLarge(InvalidImage):
+    """An image's header claims more pixels than the limit it is decoded under."""
+
+
 class InvalidBox(Ds3dError, ValueError):
     """A person box is not four finite numbers, has reversed corners or no area, or lies outside
     its image."""

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from ds3d.errors import InvalidImage
+from ds3d.errors import ImageTooLarge, InvalidImage
 
 # 40 megapixels: far above any photo the pose estimator needs, far below a bomb.
 DEFAULT_MAX_PIXELS = 40_000_000
@@ -24,8 +24,9 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarra
     """Image file bytes (JPEG, PNG, BMP, WebP, ...) -> (H, W, 3) uint8 RGB, upright by the
     EXIF orientation tag where there is one.
 
-    Raises InvalidImage if the bytes are empty, not an image, corrupt or truncated, or if the
-    header claims more than max_pixels pixels (checked before decoding).
+    Raises InvalidImage if the bytes are empty, not an image, corrupt or truncated, and its
+    subclass ImageTooLarge if the header claims more than max_pixels pixels (checked before
+    decoding).
     """
     if not data:
         raise InvalidImage("empty image")
@@ -38,7 +39,7 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarra
             if width <= 0 or height <= 0:
                 raise InvalidImage(f"image has no pixels ({width}x{height})")
             if width * height > max_pixels:
-                raise InvalidImage(
+                raise ImageTooLarge(
                     f"image is {width}x{height} = {width * height} pixels, "
                     f"more than the limit of {max_pixels}"
                 )
@@ -49,7 +50,7 @@ def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarra
     except InvalidImage:
         raise
     except Image.DecompressionBombError as exc:
-        raise InvalidImage(f"image too large: {exc}") from exc
+        raise ImageTooLarge(f"image has more than the limit of {max_pixels} pixels: {exc}") from exc
     except UnidentifiedImageError as exc:
         raise InvalidImage("not an image, or an unsupported format") from exc
     except (OSError, SyntaxError, ValueError) as exc:

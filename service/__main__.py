@@ -15,6 +15,7 @@ import sys
 from pydantic import ValidationError
 from pydantic_settings import CliSettingsSource
 
+from service.allocator import run_under_jemalloc
 from service.settings import Settings
 
 
@@ -54,7 +55,10 @@ def _invalid(exc: ValidationError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    settings = parse_settings(argv)
+    args = sys.argv[1:] if argv is None else argv
+    settings = parse_settings(args)
+    if settings.allocator == "jemalloc":
+        run_under_jemalloc(args)  # returns when jemalloc is missing or already loaded
     # Before torch loads: keep OpenMP to the configured threads too.
     os.environ.setdefault("OMP_NUM_THREADS", str(settings.torch_threads))
 
@@ -70,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
         log_level=settings.log_level,
         limit_concurrency=settings.max_connections,
         timeout_keep_alive=settings.keep_alive_s,
-        h11_max_incomplete_event_size=settings.max_header_bytes,
+        # a backstop: the app refuses a head over max_header_bytes with a 431 that names it
+        h11_max_incomplete_event_size=4 * settings.max_header_bytes,
         # Let in-flight requests finish (they are bounded by the request timeout).
         timeout_graceful_shutdown=int(settings.request_timeout_s) + 5,
     )

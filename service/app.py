@@ -16,10 +16,11 @@ import torch
 from fastapi import FastAPI, Request
 from fastapi.responses import Response
 
+from service.allocator import describe as describe_allocator
 from service.batching import MicroBatcher
 from service.deps import Runtime
 from service.engine import Engine
-from service.errors import error_response, install_handlers, to_api_error
+from service.errors import ApiError, error_response, install_handlers, to_api_error
 from service.metrics import Metrics
 from service.routes import ROUTERS
 from service.settings import Settings
@@ -41,7 +42,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.state.settings = settings
     app.state.metrics = Metrics()
     install_handlers(app, settings.retry_after_s)
-    app.middleware("http")(observe_request)
+    app.middleware("http")(refuse_large_head)
+    app.middleware("http")(observe_request)  # the outer one: it also counts the refusals
     for router in ROUTERS:
         app.include_router(router)
     return app
@@ -65,7 +67,9 @@ def serving_lifespan(
         engine.on_timings = metrics.observe_stages
         runtime = start_batchers(engine, executor, settings, metrics)
         app.state.runtime = runtime
-        log.info("model %s loaded; serving", engine.model_id)
+        log.info(
+            "model %s loaded; serving; %s", engine.model_id, describe_allocator(settings.allocator)
+        )
         yield
         # Uvicorn has stopped taking requests; finish what is queued, then stop.
         for batcher in (runtime.lift, runtime.pose):
@@ -108,6 +112,27 @@ def start_batchers(
     if pose is None:
         log.warning("/v1/pose disabled: %s", engine.pose_unavailable)
     return Runtime(engine, lift, pose)
+
+
+def request_head_bytes(request: Request) -> int:
+    """Bytes of the request head as sent: the request line and the header lines."""
+    scope = request.scope
+    target = len(scope["raw_path"]) + (
+        len(scope["query_string"]) + 1 if scope["query_string"] else 0
+    )
+    line = len(scope["method"]) + target + len(" HTTP/1.1\r\n") + 1
+    return line + sum(len(k) + len(v) + 4 for k, v in scope["headers"]) + 2
+
+
+async def refuse_large_head(request: Request, call_next) -> Response:
+    """Middleware: 431 naming max_header_bytes for a request head over it. (Uvicorn's own parser
+    stops reading at 4 times the setting, with a bare 400, so that a huge head is never
+    buffered whole.)"""
+    limit = request.app.state.settings.max_header_bytes
+    if (size := request_head_bytes(request)) > limit:
+        message = f"the request head is {size} bytes, over max_header_bytes = {limit}"
+        return error_response(ApiError(431, "headers_too_large", message))
+    return await call_next(request)
 
 
 async def observe_request(request: Request, call_next) -> Response:

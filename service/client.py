@@ -9,8 +9,10 @@ Depends on httpx and numpy only (no torch, faiss or fastapi), so it installs any
         pose.joints_2d, pose.joints_3d          # (14, 2) pixels, (14, 3) millimetres
 
 Both clients share one sans-IO core (`_Protocol`: build a request, parse a response, decide on a
-retry); they differ only in how they send and sleep. A 503 (queue full, shutting down) or a
-refused connection is retried with exponential backoff, honouring the server's Retry-After.
+retry); they differ only in how they send and sleep. A 503 (queue full, shutting down), a 502 (a
+load balancer found no replica) or a connection that failed before the answer (refused, reset,
+closed by a replica that died) is retried with exponential backoff, honouring the server's
+Retry-After: every endpoint is a pure function of its request, so sending one twice is safe.
 """
 
 from __future__ import annotations
@@ -27,6 +29,10 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+
+RETRIED_STATUSES = frozenset({502, 503})
+# The connection failed before an answer came; timeouts are not retried (the server is busy).
+RETRIED_ERRORS = (httpx.ConnectError, httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError)
 
 ImageLike = str | Path | bytes | np.ndarray
 
@@ -214,9 +220,12 @@ class _Protocol:
         return [_person(person, body, True) for person in body["people"]]
 
     def retry_delay(self, attempt: int, resp: httpx.Response | None) -> float | None:
-        """Seconds to wait before retry number attempt + 1, or None to stop: retry a 503 or a
-        refused connection (resp None) up to `retries` times; Retry-After wins over the backoff."""
-        if attempt >= self.retries or (resp is not None and resp.status_code != 503):
+        """Seconds to wait before retry number attempt + 1, or None to stop: retry a 502, a 503
+        or a failed connection (resp None) up to `retries` times; Retry-After wins over the
+        backoff."""
+        if attempt >= self.retries or (
+            resp is not None and resp.status_code not in RETRIED_STATUSES
+        ):
             return None
         backoff = min(self.max_backoff_s, self.backoff_s * 2**attempt) * random.uniform(0.5, 1.0)
         hinted = _retry_after(resp) if resp is not None else None
@@ -241,8 +250,8 @@ def _person(person: dict, body: dict, found: bool) -> PoseResult:
 
 
 class PoseClient:
-    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on 503 or a
-    refused connection, waiting backoff_s * 2**attempt (jittered, at most max_backoff_s) or the
+    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on a 502, a 503
+    or a failed connection, waiting backoff_s * 2**attempt (jittered, at most max_backoff_s) or the
     server's Retry-After; transport: an httpx transport (e.g. a Unix socket), default TCP."""
 
     def __init__(
@@ -262,7 +271,7 @@ class PoseClient:
         while True:
             try:
                 resp = self._http.request(req.method, req.path, **req.kwargs)
-            except httpx.ConnectError:
+            except RETRIED_ERRORS:
                 if (delay := self._proto.retry_delay(attempt, None)) is None:
                     raise
             else:
@@ -332,7 +341,7 @@ class AsyncPoseClient:
         while True:
             try:
                 resp = await self._http.request(req.method, req.path, **req.kwargs)
-            except httpx.ConnectError:
+            except RETRIED_ERRORS:
                 if (delay := self._proto.retry_delay(attempt, None)) is None:
                     raise
             else:

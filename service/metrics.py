@@ -1,6 +1,6 @@
 """Prometheus metrics of one app instance (its own registry, so that several apps, as in the
 tests, do not collide): requests by route and status, latency, queue depth, batch sizes and
-per-stage model time, and the process's own (memory, open files, CPU time)."""
+per-stage model time, and the process's own (memory, open files, CPU time, allocator)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,12 @@ from prometheus_client import (
     Counter,
     Gauge,
     Histogram,
+    Info,
     ProcessCollector,
     generate_latest,
 )
 
+from ds3d.memory import loaded_allocator
 from service.batching import BatchStats
 
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
@@ -26,6 +28,9 @@ class Metrics:
         self.registry = CollectorRegistry()
         # the process's memory, open files and CPU time (process_*; Linux), which a soak watches
         ProcessCollector(registry=self.registry)
+        Info("ds3d_allocator", "The process's memory allocator", registry=self.registry).info(
+            {"name": loaded_allocator()}
+        )
         self.requests = Counter(
             "ds3d_requests",
             "HTTP requests answered, by route template and status code",

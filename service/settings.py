@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -101,12 +102,18 @@ class Settings(BaseSettings):
     max_header_bytes: int = Field(
         16 * 1024,
         ge=1024,
-        description="Largest request head (request line and headers) in bytes that uvicorn "
-        "reads; a larger one gets 400.",
+        description="Largest request head (request line and headers) in bytes; a larger one "
+        "gets 431 (and past 4 times this, uvicorn stops reading it with a bare 400).",
     )
     retry_after_s: int = Field(
         1, ge=0, description="Seconds a 503 tells the client to wait before retrying (Retry-After)."
     )
     log_level: str = Field(
         "info", description="Log level of the service and uvicorn (e.g. debug, info, warning)."
+    )
+    allocator: Literal["jemalloc", "system"] = Field(
+        "jemalloc",
+        description="Memory allocator of `ds3d-serve`: jemalloc when installed (Debian: "
+        "libjemalloc2), which keeps the resident memory flat; system: the C library's malloc, "
+        "whose resident memory grows with the image sizes served (service/allocator.py).",
     )

@@ -12,6 +12,7 @@ from fastapi.concurrency import run_in_threadpool
 from starlette.datastructures import FormData, UploadFile
 
 from ds3d.boxes import checked_box
+from ds3d.errors import ImageTooLarge
 from ds3d.image_io import decode_image
 from service.engine import PoseInput
 from service.errors import ApiError
@@ -63,7 +64,10 @@ async def read_pose_input(
         data = await _read_capped_body(request, limit)
     box = parse_array(bbox, (4,), "bbox")
     k = parse_array(intrinsics, (3, 3), "intrinsics")
-    image = await run_in_threadpool(decode_image, data, settings.max_image_pixels)
+    try:
+        image = await run_in_threadpool(decode_image, data, settings.max_image_pixels)
+    except ImageTooLarge as exc:
+        raise ApiError(422, "invalid_image", f"{exc} (max_image_pixels)") from exc
     if box is not None:
         box = checked_box(box, image.shape[1], image.shape[0])
     return PoseInput(image, box, k)

@@ -1,9 +1,10 @@
-"""Speed: `ds3d bench lift`, `ds3d bench retrieval`, `ds3d bench 2d`, `ds3d bench pipeline`.
-Each measures and prints; none gates on time."""
+"""Speed and memory: `ds3d bench lift`, `ds3d bench retrieval`, `ds3d bench 2d`, `ds3d bench
+pipeline`, `ds3d bench memory`. Each measures and prints; none gates."""
 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import sys
 import time
@@ -17,8 +18,12 @@ from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
 from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
 from ds3d.cli.pipeline import load_pipeline
+from ds3d.memory import loaded_allocator, malloc_trim, resident_mb
 from ds3d.progress import progress
 from ds3d.skeleton import SET_NAMES
+
+# The environment that changes how memory is allocated, recorded in `bench memory`'s report.
+MEMORY_ENV_PREFIXES = ("MALLOC_", "LD_PRELOAD", "ONEDNN_", "DNNL_")
 
 
 def register(commands, evals, benches) -> None:
@@ -44,6 +49,14 @@ def register(commands, evals, benches) -> None:
     b.add_argument("--repeats", type=int, default=3)
     add_set_option(b, INFERENCE_OVERRIDE)
     b.set_defaults(func=bench_2d)
+
+    p = benches.add_parser("memory", help="resident memory over a stream of images of all sizes")
+    p.add_argument("--images", type=int, default=360, help="LSP test images, one at a time")
+    p.add_argument("--every", type=int, default=40, help="report every N images")
+    p.add_argument("--malloc-trim", action="store_true", help="glibc malloc_trim after each image")
+    p.add_argument("--out", type=Path, help="JSON report")
+    add_model_options(p)
+    p.set_defaults(func=bench_memory)
 
     p = benches.add_parser("pipeline", help="images/s end to end and the time of each stage")
     p.add_argument("--batch-sizes", default="1,16")
@@ -237,4 +250,35 @@ def bench_pipeline(args) -> int:
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+def bench_memory(args) -> int:
+    """The pipeline on --images LSP test images one at a time, as a service sees them (each a new
+    size): the resident memory every --every images and its growth from the first report (after
+    warm-up) to the end. Run it under each allocator (LD_PRELOAD, MALLOC_* env vars)."""
+    from ds3d.data.lsp import load_lsp
+    from ds3d.image_io import read_image
+
+    pipeline = load_pipeline(args)
+    paths = load_lsp(split="test").image_paths[: args.images]
+    rows = []
+    start = time.perf_counter()
+    for i, path in enumerate(progress(paths, desc="images", unit="img"), start=1):
+        pipeline.estimate([read_image(path)])
+        if args.malloc_trim:
+            malloc_trim()
+        if i % args.every == 0 or i == len(paths):
+            rows.append({"images": i, "rss_mb": round(resident_mb(), 1)})
+    seconds = time.perf_counter() - start
+    first, last = rows[0]["rss_mb"], rows[-1]["rss_mb"]
+    report = {
+        "allocator": loaded_allocator(),
+        "malloc_trim": args.malloc_trim,
+        "env": {k: v for k, v in os.environ.items() if k.startswith(MEMORY_ENV_PREFIXES)},
+        "rss_mb": rows,
+        "growth_pct": round(100 * (last - first) / first, 1),
+        "s_per_image": round(seconds / len(paths), 3),
+    }
+    write_report(report, args.out)
     return 0

@@ -37,6 +37,7 @@ if not (MODEL_DIR / "posedb").exists():
     pytest.skip(f"no pose database under {MODEL_DIR}", allow_module_level=True)
 
 MAX_IMAGE_BYTES = 100_000
+MAX_IMAGE_PIXELS_SIDE = 2000  # the url fixture's max_image_pixels: 2000 x 2000
 
 
 @contextmanager
@@ -69,7 +70,11 @@ def engine():
 @pytest.fixture(scope="module")
 def url(engine):
     with serve(
-        engine, max_lift_batch_size=16, max_wait_ms=30, max_image_bytes=MAX_IMAGE_BYTES
+        engine,
+        max_lift_batch_size=16,
+        max_wait_ms=30,
+        max_image_bytes=MAX_IMAGE_BYTES,
+        max_image_pixels=MAX_IMAGE_PIXELS_SIDE**2,
     ) as u:
         yield u
 
@@ -216,6 +221,14 @@ def post_image(url, data: bytes, ctype="image/jpeg", multipart=False):
     return httpx.post(f"{url}/v1/pose", content=data, headers={"content-type": ctype})
 
 
+def test_a_request_head_over_the_limit_gets_431_naming_the_setting(url):
+    big = {"x-padding": "a" * 20_000}  # over the default max_header_bytes (16 KiB)
+    resp = httpx.get(f"{url}/healthz", headers=big)
+    assert_error(resp, 431, "headers_too_large")
+    assert "max_header_bytes = 16384" in resp.json()["error"]["message"]
+    assert httpx.get(f"{url}/healthz", headers={"x-padding": "a" * 8_000}).status_code == 200
+
+
 @pytest.mark.parametrize("multipart", [False, True])
 def test_bad_images_get_json_errors(url, multipart):
     good = jpeg()
@@ -228,7 +241,12 @@ def test_bad_images_get_json_errors(url, multipart):
     assert len(bomb) < 200
     resp = post_image(url, bomb, "image/png", multipart=multipart)
     assert_error(resp, 422, "invalid_image")
-    assert "pixels" in resp.json()["error"]["message"]  # refused for its size, from the header
+    # refused for its size, from the header, naming the setting
+    assert "max_image_pixels" in resp.json()["error"]["message"]
+    just_over = png_header(MAX_IMAGE_PIXELS_SIDE + 1, MAX_IMAGE_PIXELS_SIDE)
+    resp = post_image(url, just_over, "image/png", multipart=multipart)
+    assert_error(resp, 422, "invalid_image")
+    assert "max_image_pixels" in resp.json()["error"]["message"]
     # Far over (refused on Content-Length) and just over (refused while reading).
     for extra in (70_000, 1_000):
         big = b"\xff\xd8\xff" + b"\0" * (MAX_IMAGE_BYTES + extra)

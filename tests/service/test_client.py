@@ -124,6 +124,40 @@ def test_retry_after_sets_the_wait(monkeypatch):
     assert waits == [2.0]  # a 504 is not waited on: no retry
 
 
+def test_a_dropped_connection_and_a_502_are_retried_a_timeout_is_not():
+    """A replica killed mid-request closes the connection (RemoteProtocolError, ReadError); a
+    balancer with no live replica answers 502: both retried. A read timeout is not."""
+    outcomes = [
+        httpx.RemoteProtocolError("Server disconnected without sending a response."),
+        httpx.ReadError("connection reset by peer"),
+        httpx.Response(502, text="<html>bad gateway</html>"),
+    ]
+
+    def dying(request):
+        if outcomes:
+            outcome = outcomes.pop(0)
+            if isinstance(outcome, Exception):
+                raise outcome
+            return outcome
+        return lift_answer(request)
+
+    client = PoseClient(
+        "http://svc", retries=3, backoff_s=0.0, transport=httpx.MockTransport(dying)
+    )
+    assert client.lift(np.zeros((14, 2))).joints_3d.shape == (1, 14, 3) and not outcomes
+
+    calls = []
+
+    def slow(request):
+        calls.append(1)
+        raise httpx.ReadTimeout("timed out")
+
+    client = PoseClient("http://svc", retries=3, backoff_s=0.0, transport=httpx.MockTransport(slow))
+    with pytest.raises(httpx.ReadTimeout):
+        client.lift(np.zeros((14, 2)))
+    assert len(calls) == 1
+
+
 def test_async_twin_shares_the_behaviour():
     flaky = Flaky(fails=1)
 

@@ -1,5 +1,5 @@
 """A short soak (service.soak) against a real `ds3d-serve` process on a small model: a mix of
-good and bad requests for half a minute, the server's memory and descriptors sampled from its
+good and bad requests for a minute, the server's memory and descriptors sampled from its
 /metrics. The 30-minute soak and its figures: docs/RESULTS.md."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import pytest
 
 from ds3d.data.lsp import load_lsp
 from service import soak
+from service.allocator import find_jemalloc
 
 
 @pytest.fixture
@@ -51,7 +52,7 @@ def test_a_short_soak_answers_everything_and_leaks_no_descriptors(server, data_d
     images.mkdir()
     for path in lsp.image_paths[:8]:
         (images / path.name).write_bytes(path.read_bytes())
-    args = ["--duration", "30", "--warmup", "10", "--sample-every", "3", "--clients", "3"]
+    args = ["--duration", "60", "--warmup", "20", "--sample-every", "3", "--clients", "3"]
     args += ["--poses", str(poses), "--images", str(images), "--out", str(tmp_path / "out")]
     assert soak.main([server, *args]) == 0
     result = json.loads((tmp_path / "out" / "soak.json").read_text())
@@ -65,3 +66,9 @@ def test_a_short_soak_answers_everything_and_leaks_no_descriptors(server, data_d
     assert len(result["usage"]) >= 8 and memory["rss_mb_after_warmup"] > 100
     # every request's connection and upload closed: no descriptor left open per request
     assert memory["open_fds_end"] <= memory["open_fds_after_warmup"] + 4, memory
+
+
+def test_the_service_runs_under_jemalloc_where_installed(server):
+    if find_jemalloc() is None:
+        pytest.skip("jemalloc not installed (Debian: apt-get install libjemalloc2)")
+    assert 'ds3d_allocator_info{name="jemalloc"} 1.0' in httpx.get(f"{server}/metrics").text

@@ -1,0 +1,40 @@
+"""The process's memory: its resident size, the malloc it runs on, and glibc's trim.
+
+What grows in a long-running process is read here (`ds3d bench memory`, the service's /metrics
+and its allocator choice, service/allocator.py).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+
+
+def resident_mb() -> float:
+    """This process's resident memory in MB (Linux; 0.0 elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except OSError:
+        return 0.0
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def loaded_allocator() -> str:
+    """ "jemalloc", "tcmalloc" or "glibc": the malloc this process runs on (Linux; from the
+    libraries mapped into it)."""
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError:
+        return "glibc"
+    for name in ("jemalloc", "tcmalloc"):
+        if f"lib{name}" in maps:
+            return name
+    return "glibc"
+
+
+def malloc_trim() -> None:
+    """Give glibc malloc's free pages back to the system (malloc_trim(0)); a no-op under
+    another allocator."""
+    if loaded_allocator() == "glibc":
+        ctypes.CDLL("libc.so.6").malloc_trim(0)

@@ -1,0 +1,107 @@
+"""One replica killed under load: two `ds3d-serve` replicas on the small model behind a real nginx
+(docker/local_replicas.sh), clients without retries (service.crashtest), one replica SIGKILLed.
+The minute-long run on the bundled model and its figures: docs/RESULTS.md."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from ds3d.data.lsp import load_lsp
+from service import crashtest
+
+REPO = Path(__file__).resolve().parents[2]
+NGINX = shutil.which("nginx") or next(
+    (p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if Path(p).exists()), None
+)
+pytestmark = pytest.mark.skipif(
+    NGINX is None, reason="nginx not installed (Debian: apt-get install nginx; .ci/run installs it)"
+)
+
+
+def free_ports(n: int) -> list[int]:
+    socks = [socket.socket() for _ in range(n)]
+    for sock in socks:
+        sock.bind(("127.0.0.1", 0))
+    ports = [sock.getsockname()[1] for sock in socks]
+    for sock in socks:
+        sock.close()
+    return ports
+
+
+def wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 180) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        assert process.poll() is None, "docker/local_replicas.sh exited"
+        assert time.monotonic() < deadline, f"{url} did not become ready"
+        try:
+            if httpx.get(f"{url}/readyz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.5)
+
+
+@pytest.fixture
+def replicas(model_dir, tmp_path):
+    """(balancer URL, replica URLs, run directory) of docker/local_replicas.sh on free ports."""
+    balancer, *ports = free_ports(3)
+    run = tmp_path / "replicas"
+    env = os.environ | {
+        "PORT": str(balancer),
+        "REPLICAS": " ".join(map(str, ports)),
+        "SERVE_ARGS": f"--model-dir {model_dir}",
+        "PY": sys.executable,
+        "NGINX": NGINX,
+    }
+    script = [str(REPO / "docker" / "local_replicas.sh"), str(run)]
+    process = subprocess.Popen(script, env=env, start_new_session=True)
+    urls = [f"http://127.0.0.1:{p}" for p in ports]
+    try:
+        for url in [*urls, f"http://127.0.0.1:{balancer}"]:
+            wait_ready(url, process)
+        yield f"http://127.0.0.1:{balancer}", urls, run
+    finally:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(60)
+        finally:
+            os.killpg(process.pid, signal.SIGKILL) if process.poll() is None else None
+
+
+@pytest.mark.slow
+def test_a_replica_killed_under_load_loses_no_request(replicas, data_dir, tmp_path):
+    balancer, (victim, _), run = replicas
+    lsp = load_lsp(split="test")
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps({"joints_2d": lsp.joints[:64].tolist()}))
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in lsp.image_paths[:8]:
+        (images / path.name).write_bytes(path.read_bytes())
+    pid_file = run / f"replica-{victim.rsplit(':', 1)[1]}.pid"
+    killed = int(pid_file.read_text())
+    args = [balancer, "--pid-file", str(pid_file), "--replica", victim, "--retries", "0"]
+    args += ["--duration", "30", "--kill-at", "6", "--clients", "4"]
+    args += ["--poses", str(poses), "--images", str(images), "--out", str(tmp_path / "out")]
+    assert crashtest.main(args) == 0
+    result = json.loads((tmp_path / "out" / "crashtest.json").read_text())
+    # without the SDK's retries: nginx passed every request the dead replica dropped or refused
+    # to the live one
+    assert result["sent"] > 20 and result["failed"] == 0, result["by_status"]
+    assert result["answered_200"] == result["sent"], result["by_status"]
+    assert result["by_phase"]["down"].get("200", 0) > 0, result["by_phase"]
+    # restarted by its supervisor as a new process, ready, and given traffic again
+    assert result["ready_again_after_s"] is not None
+    assert int(pid_file.read_text()) != killed
+    assert result["replica_requests_after_restart"] > 0, result

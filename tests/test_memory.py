@@ -1,0 +1,42 @@
+"""ds3d.memory (resident size, the malloc in use) and `ds3d bench memory`."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from ds3d.cli import main as cli
+from ds3d.memory import loaded_allocator, resident_mb
+from service.allocator import find_jemalloc
+
+
+def allocator_of_a_child(env: dict[str, str]) -> str:
+    code = "from ds3d.memory import loaded_allocator; print(loaded_allocator())"
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=os.environ | env, capture_output=True, text=True
+    )
+    return out.stdout.strip()
+
+
+def test_the_allocator_is_read_from_the_libraries_loaded():
+    assert allocator_of_a_child({"LD_PRELOAD": ""}) == "glibc"
+    library = find_jemalloc()
+    if library is None:
+        pytest.skip("jemalloc not installed (Debian: apt-get install libjemalloc2)")
+    assert allocator_of_a_child({"LD_PRELOAD": library}) == "jemalloc"
+
+
+@pytest.mark.slow
+def test_bench_memory_reports_the_resident_memory_along_the_images(model_dir, tmp_path):
+    out = tmp_path / "memory.json"
+    args = ["bench", "memory", "--images", "6", "--every", "3", "--malloc-trim"]
+    assert cli([*args, "--model-dir", str(model_dir), "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert [row["images"] for row in report["rss_mb"]] == [3, 6]
+    assert report["allocator"] == loaded_allocator() and report["malloc_trim"] is True
+    assert 100 < report["rss_mb"][-1]["rss_mb"] <= resident_mb() * 1.5
+    assert report["s_per_image"] > 0
