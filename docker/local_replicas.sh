@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Replicas of the service behind nginx on this host, as docker/docker-compose.yml runs them, for
-# hosts without a Docker engine (nginx from the distribution: Debian `apt-get install nginx`):
+# hosts without a Docker engine (nginx from the distribution: Debian `apt-get install nginx`;
+# NGINX_BIN names another binary):
 #   docker/local_replicas.sh [RUN_DIR]        stop with Ctrl-C or SIGTERM (stops everything)
 # nginx on 127.0.0.1:$PORT (default 8080) with docker/nginx.conf's upstream and proxy settings;
 # a replica (`python -m service`) on each of $REPLICAS (default "8001 8002"), restarted when it
@@ -13,7 +14,9 @@ RUN=${1:-out/replicas}
 PORT=${PORT:-8080}
 REPLICAS=${REPLICAS:-"8001 8002"}
 PY=${PY:-.venv/bin/python}
-NGINX=${NGINX:-$(command -v nginx || echo /usr/sbin/nginx)}
+NGINX_BIN=${NGINX_BIN:-$(command -v nginx || echo /usr/sbin/nginx)}
+# One model thread per replica, as in docker-compose.yml: replicas share the cores.
+export DS3D_TORCH_THREADS=${DS3D_TORCH_THREADS:-1} OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 mkdir -p "$RUN/tmp"
 RUN=$(realpath "$RUN")
 chmod 1777 "$RUN/tmp"  # nginx's workers (user nobody under root) buffer request bodies here
@@ -50,5 +53,5 @@ trap stop EXIT
 trap 'exit 0' INT TERM
 
 for p in $REPLICAS; do supervise "$p" & done
-"$NGINX" -p "$RUN" -e "$RUN/nginx-error.log" -c "$RUN/nginx.conf" -g "daemon off; pid $RUN/nginx.pid;" &
+"$NGINX_BIN" -p "$RUN" -e "$RUN/nginx-error.log" -c "$RUN/nginx.conf" -g "daemon off; pid $RUN/nginx.pid;" &
 wait

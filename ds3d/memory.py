@@ -38,3 +38,26 @@ def malloc_trim() -> None:
     another allocator."""
     if loaded_allocator() == "glibc":
         ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost"
+        ).split()
+    ]
+
+
+def glibc_heap_mb() -> dict[str, float] | None:
+    """glibc malloc's bytes in use and free bytes it keeps (all arenas, mallinfo2), in MB; None
+    under another allocator. What fragmentation looks like: in use flat, kept free rising."""
+    if loaded_allocator() != "glibc":
+        return None
+    libc = ctypes.CDLL("libc.so.6")
+    libc.mallinfo2.restype = _MallInfo2
+    info = libc.mallinfo2()
+    return {
+        "in_use_mb": round((info.uordblks + info.hblkhd) / 2**20, 1),
+        "kept_free_mb": round(info.fordblks / 2**20, 1),
+    }

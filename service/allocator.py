@@ -3,11 +3,10 @@
 With glibc's malloc the server's resident memory grows for as long as it serves images of new
 sizes: the 2D stage's buffers (images, feature, score and message maps, all sized by the image)
 are freed into arenas that fragment and are not given back, while the bytes in use stay flat.
-Measured on 360 LSP images, one at a time (docs/RESULTS.md, "Soak"): glibc 1,741 -> 1,916 MB
-(+10 %; 1,357 MB in use throughout); glibc trimmed (`malloc_trim`) after every image 1,628 ->
-1,658 MB but 23 % slower, and trimmed every 40 images back to the untrimmed level within 20;
-MALLOC_ARENA_MAX=2 and a smaller oneDNN primitive cache barely help; tcmalloc 1,687 -> 1,728 MB;
-jemalloc 1,645 -> 1,654 MB at glibc's speed. So `ds3d-serve` runs itself under jemalloc.
+jemalloc gives them back: over 360 LSP images it stays flat where glibc grows by 12 %, and in a
+30-minute soak of the service it holds within 1.5 % (docs/RESULTS.md, "Memory"; the other
+remedies measured there, malloc_trim, MALLOC_ARENA_MAX, a smaller oneDNN cache, tcmalloc, each
+either grows or costs speed). So `ds3d-serve` runs itself under jemalloc.
 
 jemalloc has to be loaded before anything else (LD_PRELOAD), so `ds3d-serve` re-executes itself
 with it once, at the start, when it is installed (Debian: libjemalloc2) and not yet loaded.

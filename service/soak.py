@@ -27,6 +27,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
+from service.client import auth_headers
 from service.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
 
 KINDS = ("pose", "lift", "bad")
@@ -65,8 +66,10 @@ def bad_requests(image: bytes) -> list[tuple[str, dict]]:
 
 
 def drift(usage: list[Usage], warmup_s: float) -> dict:
-    """RSS after the warm-up against the end (% of the first), and the last third's trend: its
-    linear fit's slope (MB per minute) and change over the third (% of its start)."""
+    """RSS after the warm-up against the end (% of the first), and the trend after the warm-up:
+    the median of each third (robust to the allocator's swings; the last against the middle in
+    %), and the last third's linear fit: its slope (MB per minute) and change over the third (%
+    of its start)."""
     after = [u for u in usage if u.at_s >= warmup_s]
     if len(after) < 3:
         return {}
@@ -75,12 +78,16 @@ def drift(usage: list[Usage], warmup_s: float) -> dict:
     last = t >= t[0] + 2 * (t[-1] - t[0]) / 3
     slope, _ = np.polyfit(t[last] / 60.0, rss[last], 1)
     span_min = (t[last][-1] - t[last][0]) / 60.0
+    third = np.minimum(((t - t[0]) * 3 // max(t[-1] - t[0], 1e-9)).astype(int), 2)
+    medians = [float(np.median(rss[third == k])) for k in range(3)]
     return {
         "warmup_s": warmup_s,
         "rss_mb_after_warmup": float(rss[0]),
         "rss_mb_end": float(rss[-1]),
         "rss_mb_max": float(rss.max()),
         "drift_pct": float(100 * (rss[-1] - rss[0]) / rss[0]),
+        "rss_mb_median_by_third": medians,
+        "last_vs_middle_third_pct": float(100 * (medians[2] - medians[1]) / medians[1]),
         "last_third_slope_mb_per_min": float(slope),
         "last_third_change_pct": float(100 * slope * span_min / rss[last][0]),
         "open_fds_after_warmup": after[0].open_fds,
@@ -95,7 +102,9 @@ async def soak(args) -> tuple[dict, dict[str, list[Sample]]]:
     weights = [args.mix[k] for k in KINDS]
     samples: dict[str, list[Sample]] = {k: [] for k in KINDS}
     usage: list[Usage] = []
-    async with httpx.AsyncClient(base_url=args.url, timeout=args.timeout) as client:
+    async with httpx.AsyncClient(
+        base_url=args.url, timeout=args.timeout, headers=auth_headers(args.api_key)
+    ) as client:
         t0 = time.perf_counter()
         stop_at = t0 + args.duration
 
@@ -219,6 +228,7 @@ def parse_args(argv):
     p.add_argument("--warmup", type=float, default=120.0, help="seconds before the drift counts")
     p.add_argument("--timeout", type=float, default=30.0, help="client timeout per request (s)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--api-key", help="sent as Authorization: Bearer KEY (default $DS3D_API_KEY)")
     p.add_argument("--out", type=Path, default=Path("out/soak"), help="folder for JSON + PNG")
     p.add_argument("--name", default="soak", help="file stem")
     args = p.parse_args(argv)

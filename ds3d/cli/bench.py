@@ -18,7 +18,7 @@ from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
 from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
 from ds3d.cli.pipeline import load_pipeline
-from ds3d.memory import loaded_allocator, malloc_trim, resident_mb
+from ds3d.memory import glibc_heap_mb, loaded_allocator, malloc_trim, resident_mb
 from ds3d.progress import progress
 from ds3d.skeleton import SET_NAMES
 
@@ -269,7 +269,7 @@ def bench_memory(args) -> int:
         if args.malloc_trim:
             malloc_trim()
         if i % args.every == 0 or i == len(paths):
-            rows.append({"images": i, "rss_mb": round(resident_mb(), 1)})
+            rows.append({"images": i, "rss_mb": round(resident_mb(), 1)} | (glibc_heap_mb() or {}))
     seconds = time.perf_counter() - start
     first, last = rows[0]["rss_mb"], rows[-1]["rss_mb"]
     report = {

@@ -62,7 +62,7 @@ def replicas(model_dir, tmp_path):
         "REPLICAS": " ".join(map(str, ports)),
         "SERVE_ARGS": f"--model-dir {model_dir}",
         "PY": sys.executable,
-        "NGINX": NGINX,
+        "NGINX_BIN": NGINX,
     }
     script = [str(REPO / "docker" / "local_replicas.sh"), str(run)]
     process = subprocess.Popen(script, env=env, start_new_session=True)
