@@ -1,7 +1,8 @@
 # CPU image of the ds3d service: python:3.11-slim, CPU torch pinned and installed first (so that
 # no CUDA torch is pulled in), the project with its [service] extra, the bundled models baked in,
 # a non-root user, a health check on /readyz, uvicorn (through `ds3d-serve`, which runs itself
-# under jemalloc: flat memory, service/allocator.py).
+# under jemalloc: flat memory, service/allocator.py). Closed by default: it refuses to start
+# without DS3D_API_KEYS (keys, or a file of keys mounted as a secret).
 FROM python:3.11-slim
 
 RUN apt-get update \
@@ -19,7 +20,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     DS3D_HOST=0.0.0.0 \
     DS3D_PORT=8000 \
     DS3D_MODEL_DIR=/app/models \
-    DS3D_TORCH_THREADS=1
+    DS3D_TORCH_THREADS=1 \
+    DS3D_REQUIRE_API_KEYS=true
 
 RUN pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"
 

@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
-.PHONY: install test lint eval bench build-db serve clean
+.PHONY: install test lint audit eval bench build-db serve clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -26,6 +26,11 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+# Known vulnerabilities of the installed dependencies; the last result is kept in docs/security/.
+audit: $(STAMP)
+	mkdir -p docs/security
+	$(BIN)/pip-audit --skip-editable --progress-spinner off -f json -o docs/security/pip-audit.json
 
 eval: $(STAMP)
 	$(BIN)/ds3d eval h36m --threads 1 --variants clean --out docs/results/h36m.json

@@ -16,6 +16,7 @@ from pydantic import ValidationError
 from pydantic_settings import CliSettingsSource
 
 from service.allocator import run_under_jemalloc
+from service.auth import InvalidKeys
 from service.settings import Settings
 
 
@@ -67,11 +68,17 @@ def main(argv: list[str] | None = None) -> int:
     from service.app import create_app
 
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s %(message)s")
+    try:
+        app = create_app(settings)
+    except InvalidKeys as exc:
+        print(f"ds3d-serve: {exc}", file=sys.stderr)
+        return 2
     uvicorn.run(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
+        access_log=False,  # service.access logs each request, without its query or any key
         limit_concurrency=settings.max_connections,
         timeout_keep_alive=settings.keep_alive_s,
         # a backstop: the app refuses a head over max_header_bytes with a 431 that names it

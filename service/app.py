@@ -14,15 +14,18 @@ from functools import partial
 
 import torch
 from fastapi import FastAPI, Request
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import Response
 
+from service.access import API_KEY_SCHEMES, access_rules, guard
+from service.access import describe as describe_access
 from service.allocator import describe as describe_allocator
 from service.batching import MicroBatcher
 from service.deps import Runtime
 from service.engine import Engine
 from service.errors import ApiError, error_response, install_handlers, to_api_error
 from service.metrics import Metrics
-from service.routes import ROUTERS
+from service.routes import API_ROUTERS, ROUTERS
 from service.settings import Settings
 
 log = logging.getLogger("service")
@@ -41,11 +44,27 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     )
     app.state.settings = settings
     app.state.metrics = Metrics()
+    app.state.access = access_rules(settings)
     install_handlers(app, settings.retry_after_s)
+    # The last added runs first: CORS answers preflights, then every request is counted, then
+    # its caller is found (or refused), then its head size checked.
     app.middleware("http")(refuse_large_head)
-    app.middleware("http")(observe_request)  # the outer one: it also counts the refusals
+    app.middleware("http")(guard)
+    app.middleware("http")(observe_request)
+    if origins := [o.strip() for o in settings.cors_origins.split(",") if o.strip()]:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=origins,
+            allow_methods=["GET", "POST"],
+            allow_headers=["Authorization", "X-API-Key", "Content-Type", "X-Request-ID"],
+            expose_headers=["X-Request-ID", "Retry-After"],
+            max_age=600,
+        )
+    # The keys are checked by service.access.guard; the schemes declare them in the OpenAPI,
+    # so that /docs offers to send one.
+    schemes = API_KEY_SCHEMES if app.state.access.keys is not None else []
     for router in ROUTERS:
-        app.include_router(router)
+        app.include_router(router, dependencies=schemes if router in API_ROUTERS else [])
     return app
 
 
@@ -68,7 +87,10 @@ def serving_lifespan(
         runtime = start_batchers(engine, executor, settings, metrics)
         app.state.runtime = runtime
         log.info(
-            "model %s loaded; serving; %s", engine.model_id, describe_allocator(settings.allocator)
+            "model %s loaded; serving; %s; %s",
+            engine.model_id,
+            describe_access(app.state.access, settings),
+            describe_allocator(settings.allocator),
         )
         yield
         # Uvicorn has stopped taking requests; finish what is queued, then stop.
@@ -99,6 +121,7 @@ def start_batchers(
             max_batch_size=batch_size,
             max_wait_s=settings.max_wait_ms / 1000.0,
             max_queue=queue,
+            max_queue_per_caller=max(1, int(settings.caller_queue_share * queue)),
             on_batch=metrics.batch_observer(name),
         )
         metrics.queue_depth.labels(name).set_function(lambda: batcher.depth)

@@ -3,9 +3,13 @@ batch function on an executor, off the event loop.
 
 A batch closes when it holds `max_batch_size` items, or when its oldest item has waited
 `max_wait_s` (timed from that item's arrival, so items that queued while the worker was busy go
-out at once). Items whose request has given up, or that would be answered only after their
-deadline (judged by the smoothed time of recent batches), are dropped with DeadlineExceeded
-instead of being computed: under overload the worker spends its time on answers still wanted.
+out at once). Items are queued per caller and batches take them round-robin across callers, one
+item each in turn: a caller with one request waiting gets into the next batch however many items
+another caller has queued.
+
+Items whose request has given up, or that would be answered only after their deadline (judged
+by the smoothed time of recent batches), are dropped with DeadlineExceeded instead of being
+computed: under overload the worker spends its time on answers still wanted.
 
 Each item gets its own outcome: when the batch function raises, the items of that batch are run
 again one by one, so that one bad item fails alone and its neighbours still get their results.
@@ -27,6 +31,10 @@ R = TypeVar("R")
 
 class QueueFull(Exception):
     """The queue cannot take the items of this request now; retry later."""
+
+
+class CallerQueueFull(Exception):
+    """This caller already has its share of the queue waiting; retry later."""
 
 
 class DeadlineExceeded(Exception):
@@ -82,17 +90,23 @@ class MicroBatcher(Generic[T, R]):
         max_batch_size: int,
         max_wait_s: float,
         max_queue: int,
+        max_queue_per_caller: int | None = None,
         on_batch: Callable[[BatchStats], None] | None = None,
     ):
         if max_batch_size < 1 or max_queue < 1 or max_wait_s < 0:
             raise ValueError("max_batch_size and max_queue must be >= 1, max_wait_s >= 0")
+        if max_queue_per_caller is not None and max_queue_per_caller < 1:
+            raise ValueError("max_queue_per_caller must be >= 1")
         self._run_batch = run_batch
         self._executor = executor
         self.max_batch_size = max_batch_size
         self.max_wait_s = max_wait_s
         self.max_queue = max_queue
+        self.max_queue_per_caller = max_queue_per_caller  # None: no limit but the queue's
         self._on_batch = on_batch
-        self._pending: collections.deque[_Job[T, R]] = collections.deque()
+        # per caller, in round-robin order: the caller served next comes first
+        self._pending: dict[str, collections.deque[_Job[T, R]]] = {}
+        self._depth = 0
         self._wakeup = asyncio.Event()
         self._closing = False
         self._batch_estimate_s = 0.0
@@ -101,11 +115,11 @@ class MicroBatcher(Generic[T, R]):
     @property
     def depth(self) -> int:
         """Items waiting for a batch (not counting the batch being run)."""
-        return len(self._pending)
+        return self._depth
 
     @property
     def saturated(self) -> bool:
-        return len(self._pending) >= self.max_queue
+        return self._depth >= self.max_queue
 
     @property
     def running(self) -> bool:
@@ -116,27 +130,36 @@ class MicroBatcher(Generic[T, R]):
         if self._worker is None:
             self._worker = asyncio.get_running_loop().create_task(self._work())
 
-    async def submit(self, item: T, timeout_s: float) -> R:
+    async def submit(self, item: T, timeout_s: float, caller: str = "") -> R:
         """One item's result; raises what submit_many raises (ItemFailed's cause for a bad item)."""
         try:
-            return (await self.submit_many([item], timeout_s))[0]
+            return (await self.submit_many([item], timeout_s, caller))[0]
         except ItemFailed as e:
             raise e.cause from None
 
-    async def submit_many(self, items: Sequence[T], timeout_s: float) -> list[R]:
-        """Queue all items at once (or none) and wait for their results, in order.
+    async def submit_many(self, items: Sequence[T], timeout_s: float, caller: str = "") -> list[R]:
+        """Queue all items at once (or none) in `caller`'s queue and wait for their results, in
+        order.
 
-        Raises QueueFull when they do not all fit, ShuttingDown after close(), DeadlineExceeded
-        when they are not all done within timeout_s, ItemFailed for the first item that failed.
+        Raises QueueFull when they do not all fit, CallerQueueFull when the caller has items
+        waiting and these would take it over max_queue_per_caller (a request that alone is
+        larger goes in when the caller has none waiting), ShuttingDown after close(),
+        DeadlineExceeded when they are not all done within timeout_s, ItemFailed for the first
+        item that failed.
         """
         if self._closing or self._worker is None:
             raise ShuttingDown("the service is shutting down")
-        if len(self._pending) + len(items) > self.max_queue:
-            raise QueueFull(f"{len(self._pending)} items queued, limit {self.max_queue}")
+        if self._depth + len(items) > self.max_queue:
+            raise QueueFull(f"{self._depth} items queued, limit {self.max_queue}")
+        waiting = len(self._pending.get(caller, ()))
+        cap = self.max_queue_per_caller
+        if cap is not None and waiting and waiting + len(items) > cap:
+            raise CallerQueueFull(f"{waiting} items of this caller wait, its limit is {cap}")
         loop = asyncio.get_running_loop()
         now = loop.time()
         jobs = [_Job(item, loop.create_future(), now, now + timeout_s) for item in items]
-        self._pending.extend(jobs)
+        self._pending.setdefault(caller, collections.deque()).extend(jobs)
+        self._depth += len(jobs)
         self._wakeup.set()
         futures = [job.future for job in jobs]
         _, not_done = await asyncio.wait(futures, timeout=timeout_s)
@@ -160,10 +183,21 @@ class MicroBatcher(Generic[T, R]):
             await asyncio.wait_for(asyncio.shield(self._worker), drain_timeout_s)
         except TimeoutError:
             self._worker.cancel()
-            while self._pending:
-                job = self._pending.popleft()
+            while self._depth:
+                job = self._pop()
                 if not job.future.done():
                     job.future.set_exception(ShuttingDown("the service shut down"))
+
+    def _pop(self) -> _Job[T, R]:
+        """The next item, round-robin: the first caller's oldest, that caller then moved to the
+        back of the round."""
+        caller, jobs = next(iter(self._pending.items()))
+        job = jobs.popleft()
+        del self._pending[caller]
+        if jobs:
+            self._pending[caller] = jobs
+        self._depth -= 1
+        return job
 
     async def _work(self) -> None:
         loop = asyncio.get_running_loop()
@@ -174,8 +208,9 @@ class MicroBatcher(Generic[T, R]):
                 self._wakeup.clear()
                 await self._wakeup.wait()
                 continue
-            flush_at = self._pending[0].enqueued + self.max_wait_s
-            while len(self._pending) < self.max_batch_size and not self._closing:
+            oldest = min(jobs[0].enqueued for jobs in self._pending.values())
+            flush_at = oldest + self.max_wait_s
+            while self._depth < self.max_batch_size and not self._closing:
                 remaining = flush_at - loop.time()
                 if remaining <= 0:
                     break
@@ -187,8 +222,8 @@ class MicroBatcher(Generic[T, R]):
             now = loop.time()
             live: list[_Job[T, R]] = []
             dropped = 0
-            while self._pending and len(live) < self.max_batch_size:
-                job = self._pending.popleft()
+            while self._depth and len(live) < self.max_batch_size:
+                job = self._pop()
                 if job.future.done():  # its request gave up (deadline) already
                     dropped += 1
                 elif now + self._batch_estimate_s >= job.deadline:

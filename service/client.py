@@ -2,22 +2,24 @@
 
 Depends on httpx and numpy only (no torch, faiss or fastapi), so it installs anywhere:
 
-    with PoseClient("http://127.0.0.1:8000") as client:
+    with PoseClient("http://127.0.0.1:8000") as client:  # api_key=..., default $DS3D_API_KEY
         res = client.lift(joints_2d)            # (14, 2) or (B, 14, 2) pixels
         res.joints_3d                           # (B, 14, 3) float32, millimetres
         pose = client.estimate("person.jpg")    # path, image bytes, or (H, W, 3) uint8 RGB array
         pose.joints_2d, pose.joints_3d          # (14, 2) pixels, (14, 3) millimetres
 
 Both clients share one sans-IO core (`_Protocol`: build a request, parse a response, decide on a
-retry); they differ only in how they send and sleep. A 503 (queue full, shutting down), a 502 (a
-load balancer found no replica) or a connection that failed before the answer (refused, reset,
-closed by a replica that died) is retried with exponential backoff, honouring the server's
-Retry-After: every endpoint is a pure function of its request, so sending one twice is safe.
+retry); they differ only in how they send and sleep. A 503 (queue full, shutting down), a 429
+(this caller over its rate or its share of the queue), a 502 (a load balancer found no replica)
+or a connection that failed before the answer (refused, reset, closed by a replica that died) is
+retried with exponential backoff, honouring the server's Retry-After: every endpoint is a pure
+function of its request, so sending one twice is safe.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import random
 import struct
 import time
@@ -30,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-RETRIED_STATUSES = frozenset({502, 503})
+RETRIED_STATUSES = frozenset({429, 502, 503})
 # The connection failed before an answer came; timeouts are not retried (the server is busy).
 RETRIED_ERRORS = (httpx.ConnectError, httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError)
 
@@ -220,8 +222,8 @@ class _Protocol:
         return [_person(person, body, True) for person in body["people"]]
 
     def retry_delay(self, attempt: int, resp: httpx.Response | None) -> float | None:
-        """Seconds to wait before retry number attempt + 1, or None to stop: retry a 502, a 503
-        or a failed connection (resp None) up to `retries` times; Retry-After wins over the
+        """Seconds to wait before retry number attempt + 1, or None to stop: retry a 429, a 502,
+        a 503 or a failed connection (resp None) up to `retries` times; Retry-After wins over the
         backoff."""
         if attempt >= self.retries or (
             resp is not None and resp.status_code not in RETRIED_STATUSES
@@ -249,10 +251,18 @@ def _person(person: dict, body: dict, found: bool) -> PoseResult:
     )
 
 
+def auth_headers(api_key: str | None) -> dict[str, str]:
+    """The Authorization header of `api_key`, else of $DS3D_API_KEY; none without either."""
+    key = api_key if api_key is not None else os.environ.get("DS3D_API_KEY")
+    return {"Authorization": f"Bearer {key}"} if key else {}
+
+
 class PoseClient:
-    """Blocking client. timeout: seconds per HTTP request; retries: extra tries on a 502, a 503
-    or a failed connection, waiting backoff_s * 2**attempt (jittered, at most max_backoff_s) or the
-    server's Retry-After; transport: an httpx transport (e.g. a Unix socket), default TCP."""
+    """Blocking client. api_key: sent as `Authorization: Bearer KEY` (default $DS3D_API_KEY;
+    none when neither is set). timeout: seconds per HTTP request; retries: extra tries on a 429,
+    a 502, a 503 or a failed connection, waiting backoff_s * 2**attempt (jittered, at most
+    max_backoff_s) or the server's Retry-After; transport: an httpx transport (e.g. a Unix
+    socket), default TCP."""
 
     def __init__(
         self,
@@ -262,9 +272,12 @@ class PoseClient:
         backoff_s: float = 0.1,
         max_backoff_s: float = 10.0,
         transport: httpx.BaseTransport | None = None,
+        api_key: str | None = None,
     ):
         self._proto = _Protocol(retries, backoff_s, max_backoff_s)
-        self._http = httpx.Client(base_url=base_url, timeout=timeout, transport=transport)
+        self._http = httpx.Client(
+            base_url=base_url, timeout=timeout, transport=transport, headers=auth_headers(api_key)
+        )
 
     def _send(self, req: _Request, parse):
         attempt = 0
@@ -332,9 +345,12 @@ class AsyncPoseClient:
         backoff_s: float = 0.1,
         max_backoff_s: float = 10.0,
         transport: httpx.AsyncBaseTransport | None = None,
+        api_key: str | None = None,
     ):
         self._proto = _Protocol(retries, backoff_s, max_backoff_s)
-        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, transport=transport)
+        self._http = httpx.AsyncClient(
+            base_url=base_url, timeout=timeout, transport=transport, headers=auth_headers(api_key)
+        )
 
     async def _send(self, req: _Request, parse):
         attempt = 0

@@ -31,7 +31,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from service.client import AsyncPoseClient, ServiceError
+from service.client import AsyncPoseClient, ServiceError, auth_headers
 from service.loadtest import LOCAL_HOSTS, image_payloads, read_poses
 
 PHASES = ("before", "down", "after")
@@ -51,11 +51,13 @@ async def wait_ready(url: str, timeout_s: float, poll_s: float = 0.2) -> float |
     return None
 
 
-async def api_requests_served(url: str) -> int:
+async def api_requests_served(url: str, api_key: str | None) -> int:
     """Requests to /v1/* that the replica at url answered since it started (its /metrics)."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    async with httpx.AsyncClient(base_url=url, timeout=5.0) as client:
+    async with httpx.AsyncClient(
+        base_url=url, timeout=5.0, headers=auth_headers(api_key)
+    ) as client:
         text = (await client.get("/metrics")).text
     return int(
         sum(
@@ -86,7 +88,9 @@ async def crash_test(args) -> dict:
             return "before"
         return "down" if ready_after is None or t < killed_at + ready_after else "after"
 
-    async with AsyncPoseClient(args.url, timeout=args.timeout, retries=args.retries) as client:
+    async with AsyncPoseClient(
+        args.url, timeout=args.timeout, retries=args.retries, api_key=args.api_key
+    ) as client:
         t0 = time.perf_counter()
         stop_at = t0 + args.duration
 
@@ -122,7 +126,7 @@ async def crash_test(args) -> dict:
         workers = [worker(args.seed + i) for i in range(args.clients)]
         await asyncio.gather(killer(), *workers)
 
-    served = await api_requests_served(args.replica) if ready_after is not None else 0
+    served = await api_requests_served(args.replica, args.api_key) if ready_after is not None else 0
     every: dict[str, int] = {}
     for counts in outcomes.values():
         for status, n in counts.items():
@@ -157,6 +161,7 @@ def parse_args(argv):
     p.add_argument("--retries", type=int, default=3, help="the SDK's retries (0: none)")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per HTTP request")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--api-key", help="sent as Authorization: Bearer KEY (default $DS3D_API_KEY)")
     p.add_argument("--out", type=Path, default=Path("out/crashtest"))
     p.add_argument("--name", default="crashtest")
     args = p.parse_args(argv)

@@ -54,6 +54,12 @@ async def get_runtime_handle(request: Request) -> RuntimeHandle:
     return RuntimeHandle(request.app.state)
 
 
+async def get_caller(request: Request) -> str:
+    """Who calls: `key:ID` or `ip:ADDRESS`, as service.access.guard found it."""
+    return request.state.caller
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+CallerDep = Annotated[str, Depends(get_caller)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 RuntimeHandleDep = Annotated[RuntimeHandle, Depends(get_runtime_handle)]

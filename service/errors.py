@@ -11,7 +11,13 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ds3d.errors import InvalidBox, InvalidImage, InvalidPose
-from service.batching import DeadlineExceeded, ItemFailed, QueueFull, ShuttingDown
+from service.batching import (
+    CallerQueueFull,
+    DeadlineExceeded,
+    ItemFailed,
+    QueueFull,
+    ShuttingDown,
+)
 
 log = logging.getLogger("service")
 
@@ -48,6 +54,9 @@ def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
         inner = to_api_error(exc.cause, retry_after_s)
         inner.message = f"items[{exc.index}]: {inner.message}"
         return inner
+    if isinstance(exc, CallerQueueFull):
+        message = f"this caller's share of the queue is full ({exc}, caller_queue_share)"
+        return ApiError(429, "caller_queue_full", message, retry)
     if isinstance(exc, QueueFull):
         return ApiError(503, "overloaded", f"the queue is full ({exc}); retry later", retry)
     if isinstance(exc, ShuttingDown):
@@ -105,5 +114,13 @@ def install_handlers(app: FastAPI, retry_after_s: int) -> None:
     async def _mapped(_: Request, exc: Exception):
         return error_response(to_api_error(exc, retry_after_s))
 
-    for kind in (ItemFailed, QueueFull, ShuttingDown, DeadlineExceeded, InvalidPose, InvalidImage):
+    for kind in (
+        ItemFailed,
+        CallerQueueFull,
+        QueueFull,
+        ShuttingDown,
+        DeadlineExceeded,
+        InvalidPose,
+        InvalidImage,
+    ):
         app.add_exception_handler(kind, _mapped)

@@ -10,7 +10,10 @@ overload shows). /v1/lift payloads are random poses of the --poses file (`ds3d l
 format; docker/loadtest_matrix.sh writes LSP's annotations to one); /v1/pose payloads are image
 files, those of the folder or those matching the glob that --images gives. The tool is a client:
 it imports nothing of the library.
-Raw httpx, no retries: every status is counted as the service gave it. Prints and writes JSON
+Raw httpx, no retries: every status is counted as the service gave it. A closed-loop worker told
+429 (its caller over its share) waits the Retry-After it was given before its next request, as
+HTTP asks and the SDK does; without that, a refused worker's instant resends take the cores of
+this machine from the service it measures. Prints and writes JSON
 (throughput, latency percentiles, counts by status) and a PNG of latency over time.
 Bounded: at most --max-requests requests and --duration seconds (plus the last answers); only
 local targets (127.0.0.1, localhost, ::1).
@@ -31,6 +34,8 @@ from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
+
+from service.client import auth_headers
 
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1"}
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
@@ -159,7 +164,8 @@ class Runner:
         self.samples: list[Sample] = []
         self._next = 0
 
-    async def one(self) -> None:
+    async def one(self) -> float:
+        """Send the next request and record its answer; the seconds a 429 asks to wait (else 0)."""
         payload = self.payloads[self._next % len(self.payloads)]
         self._next += 1
         start = time.perf_counter()
@@ -172,8 +178,10 @@ class Runner:
             status = str(resp.status_code)
         except httpx.HTTPError as e:
             status = f"error:{type(e).__name__}"
+            resp = None
         end = time.perf_counter()
         self.samples.append(Sample(start - self.t0, end - start, status))
+        return float(resp.headers.get("retry-after", 1)) if status == "429" else 0.0
 
 
 async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, float, float]:
@@ -197,7 +205,7 @@ async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_r
 
     async def worker():
         while time.perf_counter() < stop_at and next(budget, None) is not None:
-            await runner.one()
+            await asyncio.sleep(min(await runner.one(), max(stop_at - time.perf_counter(), 0)))
 
     await asyncio.gather(*(worker() for _ in range(concurrency)))
 
@@ -223,7 +231,9 @@ async def run(args) -> tuple[dict, list[Sample]]:
             raise SystemExit("--endpoint pose needs --images DIR_OR_GLOB")
         payloads = image_payloads(args.images, 256)
     limits = httpx.Limits(max_connections=args.max_connections, max_keepalive_connections=64)
-    async with httpx.AsyncClient(base_url=args.url, timeout=args.timeout, limits=limits) as client:
+    async with httpx.AsyncClient(
+        base_url=args.url, timeout=args.timeout, limits=limits, headers=auth_headers(args.api_key)
+    ) as client:
         batches_before = await batch_totals(client, args.endpoint)
         runner = Runner(client, args.endpoint, payloads, time.perf_counter())
         if args.mode == "closed":
@@ -276,6 +286,7 @@ def parse_args(argv):
     p.add_argument("--max-connections", type=int, default=512)
     p.add_argument("--deadline", type=float, help="count answers slower than this (s)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--api-key", help="sent as Authorization: Bearer KEY (default $DS3D_API_KEY)")
     p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="folder for JSON + PNG")
     p.add_argument("--name", help="file stem (default: endpoint_mode_N)")
     args = p.parse_args(argv)

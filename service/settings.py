@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -110,6 +110,44 @@ class Settings(BaseSettings):
     )
     log_level: str = Field(
         "info", description="Log level of the service and uvicorn (e.g. debug, info, warning)."
+    )
+    api_keys: SecretStr | None = Field(
+        None,
+        description="API keys, comma-separated or the path of a file of one key per line (# "
+        "comments), each at least 16 characters. When set, /v1/* (and /metrics unless "
+        "metrics_public) need `Authorization: Bearer KEY` or `X-API-Key: KEY`, else 401. "
+        "Unset: every caller that can reach the service may use it.",
+    )
+    require_api_keys: bool = Field(
+        False,
+        description="Refuse to start without api_keys (the Docker image sets it, so that a "
+        "deployment is closed unless it is given keys).",
+    )
+    metrics_public: bool = Field(
+        False, description="Serve /metrics without a key when api_keys is set."
+    )
+    rate_limit_rps: float = Field(
+        0.0,
+        ge=0.0,
+        description="Requests per second one caller (its key; without keys, its address) may "
+        "send to /v1/* on average (a token bucket); past it 429 with Retry-After. 0: no limit.",
+    )
+    rate_limit_burst: int = Field(
+        20, ge=1, description="Requests one caller may send at once above rate_limit_rps."
+    )
+    caller_queue_share: float = Field(
+        0.5,
+        gt=0.0,
+        le=1.0,
+        description="Share of each model queue (max_queue, max_lift_queue) one caller may have "
+        "waiting; past it 429 with Retry-After while other callers still get in. Batches take "
+        "items round-robin across callers.",
+    )
+    cors_origins: str = Field(
+        "",
+        description="Origins allowed to call the API from a browser page (CORS), "
+        "comma-separated, e.g. https://app.example.org; empty: none (the service's own page "
+        "needs none).",
     )
     allocator: Literal["jemalloc", "system"] = Field(
         "jemalloc",

@@ -156,6 +156,8 @@ def test_wheel_installs_and_predicts_outside_the_checkout(data_dir, tmp_path):
     )
     tops = {name.split("/")[0] for name in names}
     assert {top for top in tops if not top.endswith(".dist-info")} == {"ds3d", "service"}
+    page = {p.name for p in (PROJECT_ROOT / "service" / "static").iterdir()}  # the web page
+    assert {n.removeprefix("service/static/") for n in names if "/static/" in n} == page
 
     venv = tmp_path / "venv"
     python = _fresh_venv(venv)

@@ -3,6 +3,7 @@ order their paths appear in the OpenAPI."""
 
 from __future__ import annotations
 
-from service.routes import health, lift, pose
+from service.routes import health, lift, page, pose
 
-ROUTERS = (lift.router, pose.router, health.router)
+API_ROUTERS = (lift.router, pose.router)  # the /v1 API, which callers may need a key for
+ROUTERS = (*API_ROUTERS, health.router, page.router)

@@ -8,7 +8,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request
 
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES, NUM_JOINTS
-from service.deps import RuntimeHandleDep, SettingsDep
+from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
 from service.engine import LiftInput, request_timings_ms
 from service.errors import ApiError
 from service.schemas import ERROR_RESPONSES, LiftRequest, LiftResponse, LiftResult
@@ -47,7 +47,9 @@ def lift_inputs(body: LiftRequest) -> list[LiftInput]:
     responses=ERROR_RESPONSES,
     dependencies=[Depends(require_json)],
 )
-async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleDep) -> LiftResponse:
+async def lift(
+    body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleDep, caller: CallerDep
+) -> LiftResponse:
     """Lift 2D poses (pixels) to 3D (millimetres). Items are answered in order; each is one
     element of a model batch shared with other requests."""
     t0 = time.perf_counter()
@@ -61,7 +63,7 @@ async def lift(body: LiftRequest, settings: SettingsDep, runtime: RuntimeHandleD
     if len(body.items) > most:
         why = f"{len(body.items)} items, over {name} = {most}"
         raise ApiError(413, "too_many_items", why)
-    outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s)
+    outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s, caller)
     return LiftResponse(
         items=[
             LiftResult(

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Query, Request
 from ds3d.pipeline import MIN_SCORE
 from ds3d.skeleton import JOINT_NAMES
 from service import engine
-from service.deps import RuntimeHandleDep, SettingsDep
+from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
 from service.engine import request_timings_ms
 from service.errors import ApiError
 from service.schemas import ERROR_RESPONSES, PeopleResponse, Person, PoseResponse
@@ -30,6 +30,7 @@ async def pose(
     request: Request,
     settings: SettingsDep,
     runtime: RuntimeHandleDep,
+    caller: CallerDep,
     bbox: str | None = Query(None, description="JSON [x0, y0, x1, y1] pixels; skips the search"),
     intrinsics: str | None = Query(None, description="JSON 3x3 camera matrix"),
     people: Literal["best", "all"] = Query(
@@ -49,7 +50,7 @@ async def pose(
     rt = runtime.require()
     if rt.pose is None:
         raise ApiError(503, "model_unavailable", rt.engine.pose_unavailable or "no 2D stage")
-    out = await rt.pose.submit(item, settings.request_timeout_s)
+    out = await rt.pose.submit(item, settings.request_timeout_s, caller)
     common = {
         "joint_names": list(JOINT_NAMES),
         "model": rt.engine.model_id,

@@ -6,17 +6,14 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-import socket
 import struct
 import threading
 import time
 import zlib
-from contextlib import contextmanager
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -26,7 +23,6 @@ from ds3d.errors import DataFormatError
 from ds3d.image_io import read_image
 from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
-from service.app import create_app
 from service.client import AsyncPoseClient, PoseClient, ServiceError
 from service.engine import Engine
 from service.settings import Settings
@@ -40,36 +36,9 @@ MAX_IMAGE_BYTES = 100_000
 MAX_IMAGE_PIXELS_SIDE = 2000  # the url fixture's max_image_pixels: 2000 x 2000
 
 
-@contextmanager
-def serve(engine: Engine, **settings):
-    """A uvicorn server for create_app(Settings(**settings), engine) on a free port; its URL."""
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    app = create_app(Settings(port=port, **settings), engine)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "server did not start"
-        time.sleep(0.02)
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(30)
-        sock.close()
-
-
 @pytest.fixture(scope="module")
-def engine():
-    return Engine.load(MODEL_DIR, "cpu")
-
-
-@pytest.fixture(scope="module")
-def url(engine):
-    with serve(
+def url(engine, serving):
+    with serving(
         engine,
         max_lift_batch_size=16,
         max_wait_ms=30,
@@ -315,13 +284,13 @@ def pose_engine(data_dir, tmp_path_factory):
     return engine
 
 
-def test_pose_matches_the_pipeline(pose_engine):
+def test_pose_matches_the_pipeline(pose_engine, serving):
     path = load_lsp(split="test").image_paths[0]
     image = read_image(path)
     box = [5.0, 5.0, image.shape[1] - 5.0, image.shape[0] - 5.0]
     k = [[600.0, 0.0, image.shape[1] / 2], [0.0, 600.0, image.shape[0] / 2], [0.0, 0.0, 1.0]]
     pipeline = pose_engine.pipeline
-    with serve(pose_engine, max_batch_size=8, max_wait_ms=100) as u, PoseClient(u) as client:
+    with serving(pose_engine, max_batch_size=8, max_wait_ms=100) as u, PoseClient(u) as client:
         # A file path, sent as multipart.
         res = client.estimate(path)
         ref = pipeline.estimate([image])
@@ -349,9 +318,9 @@ def test_pose_matches_the_pipeline(pose_engine):
         assert not np.allclose(many[1].joints_2d, many[0].joints_2d)
 
 
-def test_full_queue_answers_503_at_once(engine, poses):
+def test_full_queue_answers_503_at_once(engine, poses, serving):
     # The batch waits up to 2 s for company, so the first request's items stay queued.
-    with serve(engine, max_lift_queue=4, max_lift_batch_size=64, max_wait_ms=2000) as u:
+    with serving(engine, max_lift_queue=4, max_lift_batch_size=64, max_wait_ms=2000) as u:
         first: list[httpx.Response] = []
         waiter = threading.Thread(
             target=lambda: first.append(post_lift(u, {"items": [good_item(poses)] * 4}))
@@ -374,9 +343,9 @@ def test_full_queue_answers_503_at_once(engine, poses):
         assert httpx.get(f"{u}/readyz").status_code == 200
 
 
-def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses):
+def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses, serving):
     # The batch waits 300 ms for company, the deadline is 50 ms.
-    with serve(engine, max_lift_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
+    with serving(engine, max_lift_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
         assert_error(post_lift(u, {"items": [good_item(poses)]}), 504, "timeout")
         assert httpx.get(f"{u}/healthz").status_code == 200
         assert httpx.get(f"{u}/readyz").status_code == 200
@@ -384,13 +353,13 @@ def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses):
         assert counts["ds3d_requests_total"] == 1
 
 
-def test_shutdown_answers_the_queued_requests(engine, poses):
+def test_shutdown_answers_the_queued_requests(engine, poses, serving):
     results: list[int] = []
 
     def call(u):
         results.append(post_lift(u, {"items": [good_item(poses)]}, timeout=30).status_code)
 
-    with serve(engine, max_lift_batch_size=64, max_wait_ms=1000) as u:
+    with serving(engine, max_lift_batch_size=64, max_wait_ms=1000) as u:
         threads = [threading.Thread(target=call, args=(u,)) for _ in range(4)]
         for t in threads:
             t.start()
@@ -415,7 +384,7 @@ def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
         loadtest.parse_args(["http://example.com:8000"])  # only local targets
 
 
-def test_people_all_and_nobody(engine):
+def test_people_all_and_nobody(engine, serving):
     """A canvas of two LSP test people: people=all answers both (boxes matching theirs), the
     default answers one person, found; a blank image answers nobody, and person_found false."""
     if engine.pipeline is None:
@@ -425,7 +394,7 @@ def test_people_all_and_nobody(engine):
 
     canvas = compose(load_lsp(split="test"), [3, 8], [0.8, 0.5], np.random.default_rng(0))
     assert len(canvas.sources) == 2
-    with serve(engine, max_wait_ms=30) as u, PoseClient(u, retries=0) as client:
+    with serving(engine, max_wait_ms=30) as u, PoseClient(u, retries=0) as client:
         people = client.find_people(canvas.image)
         assert len(people) >= 2 and [p.score for p in people] == sorted(
             [p.score for p in people], reverse=True

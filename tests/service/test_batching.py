@@ -11,6 +11,7 @@ import pytest
 
 from service.batching import (
     BatchStats,
+    CallerQueueFull,
     DeadlineExceeded,
     ItemFailed,
     MicroBatcher,
@@ -63,6 +64,55 @@ def test_concurrent_items_share_batches_and_get_their_own_results():
     assert max(sizes) == 8  # filled to max_batch_size, never beyond
     assert [s.size for s in stats] == sizes
     assert all(isinstance(s, BatchStats) and s.seconds >= 0 for s in stats)
+
+
+def test_batches_take_items_round_robin_across_callers():
+    """A caller with 24 items queued does not hold back another caller's one item: it goes out
+    in the next batch, and the first caller keeps its own order."""
+    fn = Squares()
+    fn.gate.clear()  # hold the first batch so that the queue fills
+
+    async def main():
+        b = make(fn, max_batch_size=4, max_wait_s=0.0)
+        b.start()
+        greedy = asyncio.ensure_future(b.submit_many([float(i) for i in range(24)], 5, "key:a"))
+        await asyncio.sleep(0.1)  # the worker took the first batch and waits on the gate
+        polite = asyncio.ensure_future(b.submit(100.0, 5, "key:b"))
+        await asyncio.sleep(0.05)
+        fn.gate.set()
+        out = await asyncio.gather(greedy, polite)
+        await b.close(5)
+        return out
+
+    greedy, polite = run(main())
+    assert polite == 10_000.0 and greedy == [float(i * i) for i in range(24)]
+    assert fn.batches[0] == [0.0, 1.0, 2.0, 3.0]
+    assert fn.batches[1] == [4.0, 100.0, 5.0, 6.0]  # one item each in turn, then a's remain
+    assert [x for batch in fn.batches for x in batch] == [0, 1, 2, 3, 4, 100, *range(5, 24)]
+
+
+def test_a_caller_waits_with_at_most_its_share_of_the_queue():
+    fn = Squares()
+    fn.gate.clear()
+
+    async def main():
+        b = make(fn, max_batch_size=2, max_wait_s=0.0, max_queue=16, max_queue_per_caller=6)
+        b.start()
+        first = asyncio.ensure_future(b.submit_many([1.0, 2.0], 5, "key:a"))  # taken, running
+        await asyncio.sleep(0.1)
+        waiting = asyncio.ensure_future(b.submit_many([3.0] * 6, 5, "key:a"))
+        await asyncio.sleep(0.05)
+        with pytest.raises(CallerQueueFull, match="limit is 6"):
+            await b.submit(4.0, 5, "key:a")
+        other = asyncio.ensure_future(b.submit_many([5.0] * 6, 5, "key:b"))  # b's own share
+        await asyncio.sleep(0.05)
+        fn.gate.set()
+        out = await asyncio.gather(first, waiting, other)
+        await b.close(5)
+        return out
+
+    first, waiting, other = run(main())
+    assert first == [1.0, 4.0] and waiting == [9.0] * 6 and other == [25.0] * 6
 
 
 def test_a_lone_item_leaves_after_max_wait():

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from pydantic import SecretStr
 
 from service.__main__ import main, parse_settings
 from service.settings import Settings
@@ -78,6 +79,12 @@ def test_every_field_is_a_flag():
         "request_timeout_s": ("3.5", 3.5),
         "keep_alive_s": ("2.5", 2.5),
         "max_header_bytes": ("32768", 32768),
+        "allocator": ("system", "system"),
+        "api_keys": ("a-key-of-sixteen-or-more", SecretStr("a-key-of-sixteen-or-more")),
+        "require_api_keys": ("true", True),
+        "metrics_public": ("true", True),
+        "caller_queue_share": ("0.25", 0.25),
+        "cors_origins": ("https://app.example.org", "https://app.example.org"),
     }
     argv, want = [], {}
     for name in FIELDS:
