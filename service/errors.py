@@ -58,11 +58,12 @@ def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
         message = f"this caller's share of the queue is full ({exc}, caller_queue_share)"
         return ApiError(429, "caller_queue_full", message, retry)
     if isinstance(exc, QueueFull):
-        return ApiError(503, "overloaded", f"the queue is full ({exc}); retry later", retry)
+        message = f"the queue is full ({exc}: max_queue, max_lift_queue); retry later"
+        return ApiError(503, "overloaded", message, retry)
     if isinstance(exc, ShuttingDown):
         return ApiError(503, "shutting_down", str(exc), retry)
     if isinstance(exc, DeadlineExceeded):
-        return ApiError(504, "timeout", f"the request timed out: {exc}")
+        return ApiError(504, "timeout", f"the request timed out: {exc} (request_timeout_s)")
     if isinstance(exc, InvalidPose):
         return ApiError(422, "invalid_pose", str(exc))
     if isinstance(exc, InvalidBox):

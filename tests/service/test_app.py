@@ -332,6 +332,7 @@ def test_full_queue_answers_503_at_once(engine, poses, serving):
         resp = post_lift(u, {"items": [good_item(poses)]})
         assert time.perf_counter() - t0 < 1.0  # refused at once, not after the wait
         assert_error(resp, 503, "overloaded")
+        assert "max_lift_queue" in resp.json()["error"]["message"]
         assert resp.headers["retry-after"] == "1"
         assert httpx.get(f"{u}/healthz").status_code == 200
         # More items than the queue holds can never fit: 413, nothing to retry.
@@ -346,7 +347,9 @@ def test_full_queue_answers_503_at_once(engine, poses, serving):
 def test_past_the_deadline_answers_504_and_stays_healthy(engine, poses, serving):
     # The batch waits 300 ms for company, the deadline is 50 ms.
     with serving(engine, max_lift_batch_size=64, max_wait_ms=300, request_timeout_s=0.05) as u:
-        assert_error(post_lift(u, {"items": [good_item(poses)]}), 504, "timeout")
+        resp = post_lift(u, {"items": [good_item(poses)]})
+        assert_error(resp, 504, "timeout")
+        assert "request_timeout_s" in resp.json()["error"]["message"]
         assert httpx.get(f"{u}/healthz").status_code == 200
         assert httpx.get(f"{u}/readyz").status_code == 200
         counts = metric(u, "ds3d_requests_total", {"route": "/v1/lift", "status": "504"})

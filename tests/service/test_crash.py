@@ -17,7 +17,6 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ds3d.data.lsp import load_lsp
 from service import crashtest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -80,15 +79,9 @@ def replicas(model_dir, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_replica_killed_under_load_loses_no_request(replicas, data_dir, tmp_path):
+def test_a_replica_killed_under_load_loses_no_request(replicas, load_inputs, tmp_path):
     balancer, (victim, _), run = replicas
-    lsp = load_lsp(split="test")
-    poses = tmp_path / "poses.json"
-    poses.write_text(json.dumps({"joints_2d": lsp.joints[:64].tolist()}))
-    images = tmp_path / "images"
-    images.mkdir()
-    for path in lsp.image_paths[:8]:
-        (images / path.name).write_bytes(path.read_bytes())
+    poses, images = load_inputs
     pid_file = run / f"replica-{victim.rsplit(':', 1)[1]}.pid"
     killed = int(pid_file.read_text())
     args = [balancer, "--pid-file", str(pid_file), "--replica", victim, "--retries", "0"]
