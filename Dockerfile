@@ -11,6 +11,9 @@ RUN apt-get update \
 
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+# The project's extras to install: `--build-arg EXTRAS=service,ray` makes the image of the Ray
+# Serve path (docker/k8s/rayservice.yaml).
+ARG EXTRAS=service
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
@@ -30,7 +33,8 @@ WORKDIR /app
 # models and the code.
 COPY pyproject.toml README.md ./
 RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
-print('\n'.join(p['dependencies'] + p['optional-dependencies']['service']))" > /tmp/requirements.txt \
+extras = [d for e in '${EXTRAS}'.split(',') for d in p['optional-dependencies'][e]]; \
+print('\n'.join(p['dependencies'] + extras))" > /tmp/requirements.txt \
     && pip install --no-cache-dir -r /tmp/requirements.txt \
     && useradd --create-home --uid 10001 --user-group ds3d
 # The models before the code (they change less often); both before the install, which maps the

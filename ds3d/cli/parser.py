@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.cli.lift",
     "ds3d.cli.image2d",
     "ds3d.cli.pipeline",
+    "ds3d.cli.batch",
     "ds3d.cli.bench",
 )
 DEFAULT_IMAGE2D = MODELS_DIR / "image2d"
