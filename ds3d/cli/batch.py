@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from ds3d.cli.parser import add_model_options
+from ds3d.cli.parser import add_model_options, add_people_options
 
 
 def register(commands, evals, benches) -> None:
@@ -32,13 +32,7 @@ def register(commands, evals, benches) -> None:
         "(default: this machine's CPU count / --threads)",
     )
     p.add_argument("--batch-size", type=int, default=8, help="images an actor estimates at once")
-    p.add_argument(
-        "--people",
-        choices=("best", "all"),
-        default="best",
-        help="best: the likeliest person per image; all: every person found",
-    )
-    p.add_argument("--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE")
+    add_people_options(p)
     p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
     p.add_argument(
         "--max-pixels",

@@ -74,6 +74,19 @@ def set_threads(args) -> None:
         torch.set_num_threads(args.threads)
 
 
+def add_people_options(parser) -> None:
+    """--people (best or all) and --min-score, of the commands that estimate people in images."""
+    parser.add_argument(
+        "--people",
+        choices=("best", "all"),
+        default="best",
+        help="best: the likeliest person per image; all: every person found",
+    )
+    parser.add_argument(
+        "--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE"
+    )
+
+
 def add_set_option(parser, text: str) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=text)
 

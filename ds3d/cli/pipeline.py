@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ds3d.cli.parser import add_model_options, field_overrides, write_report
+from ds3d.cli.parser import add_model_options, add_people_options, field_overrides, write_report
 from ds3d.evaluation.lsp import REFINEMENT_VARIANTS, evaluate_refinement
 
 
@@ -30,13 +30,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--out", type=Path, default=Path("predictions"), help="output folder")
     p.add_argument("--batch-size", type=int, default=16, help="images estimated at once")
     p.add_argument("--stride", type=int, default=1, help="every n-th frame of a video or webcam")
-    p.add_argument(
-        "--people",
-        choices=("best", "all"),
-        default="best",
-        help="best: the likeliest person per image; all: every person found",
-    )
-    p.add_argument("--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE")
+    add_people_options(p)
     p.add_argument(
         "--bbox",
         help="the person's box x,y,w,h in px, the same in every image (default: people are "
