@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -221,8 +222,8 @@ class Pipeline:
         bboxes=None,
         intrinsics=None,
         iterations: int | None = None,
-        people: str = "best",
-        min_score: float = MIN_SCORE,
+        people: str | Sequence[str] = "best",
+        min_score: float | Sequence[float] = MIN_SCORE,
     ) -> PipelineResult:
         """2D and 3D poses of the people in B images.
 
@@ -232,14 +233,21 @@ class Pipeline:
         (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations.
         people: "best", one person per image (PipelineResult.person_found says whether anybody
         scored min_score), or "all", every person scoring at least min_score (none for an image
-        without people). Raises InvalidImage, InvalidBox (ds3d.boxes.checked_box), InvalidPose
-        (bad intrinsics) or ValueError (bad people or min_score).
+        without people); people and min_score are for every image or one per image. Only the
+        people answered are lifted, so an image's answer is the same whichever other images,
+        asking whatever, share its call (up to the 3D stage's rounding, which depends on how
+        many people are lifted together). Raises InvalidImage, InvalidBox
+        (ds3d.boxes.checked_box), InvalidPose (bad intrinsics) or ValueError (bad people or
+        min_score).
         """
-        if people not in PEOPLE:
-            raise ValueError(f"people must be one of {PEOPLE}, got {people!r}")
-        if not 0.0 <= min_score <= 1.0:
-            raise ValueError(f"min_score must lie in [0, 1], got {min_score}")
         images = list(images)
+        people = _per_image(people, len(images), "people")
+        min_score = _per_image(min_score, len(images), "min_score")
+        for wanted, floor in zip(people, min_score, strict=True):
+            if wanted not in PEOPLE:
+                raise ValueError(f"people must be one of {PEOPLE}, got {wanted!r}")
+            if not 0.0 <= floor <= 1.0:
+                raise ValueError(f"min_score must lie in [0, 1], got {floor}")
         if bboxes is not None and len(bboxes) != len(images):
             raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
         given = [None] * len(images) if bboxes is None else bboxes
@@ -275,7 +283,7 @@ class Pipeline:
         # Who is answered is settled on the 2D stage's poses, so that only they are lifted.
         score = person_probability(estimate.score.float(), self.config.search)
         given = torch.tensor([boxes[i] is not None for i, _, _ in crops])
-        found = given | (score >= min_score)
+        found = given | (score >= torch.tensor(min_score, dtype=score.dtype)[owner_t])
         answered = self._answered(owner_t, estimate.joints_2d, score, found, people)
         if intrinsics is not None:
             intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
@@ -310,17 +318,17 @@ class Pipeline:
         joints_2d: torch.Tensor,
         score: torch.Tensor,
         found: torch.Tensor,
-        people: str,
+        people: list[str],
     ) -> torch.Tensor:
         """Of every crop's 2D pose (image_index (N,), joints_2d (N, 14, 2) px, score (N,),
         found (N,) bool), the rows answered: per image, after non-maximum suppression of
-        their boxes by score, the best one ("best") or those found ("all")."""
+        their boxes by score, the best one (people[image] "best") or those found ("all")."""
         boxes = person_boxes(joints_2d.numpy())
         rows = [torch.zeros(0, dtype=torch.long)]
         for image in image_index.unique().tolist():
             own = torch.nonzero(image_index == image).view(-1)
             kept = own[suppress(boxes[own], score[own].numpy(), self.config.search.overlap)]
-            rows.append(kept[:1] if people == "best" else kept[found[kept]])
+            rows.append(kept[:1] if people[image] == "best" else kept[found[kept]])
         return torch.cat(rows)
 
     @torch.inference_mode()
@@ -415,6 +423,16 @@ class Pipeline:
             ref.joints_2d[rows, chosen],
             ref.score[rows, chosen],
         )
+
+
+def _per_image(value, n: int, name: str) -> list:
+    """A per-image option given once for every image (a str or a number) or as n values."""
+    if isinstance(value, str | int | float):
+        return [value] * n
+    values = list(value)
+    if len(values) != n:
+        raise ValueError(f"{len(values)} values of {name} for {n} images")
+    return values
 
 
 @dataclass

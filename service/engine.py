@@ -156,8 +156,8 @@ class Engine:
 
     def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:
         """2D and 3D poses of B images (needs the pipeline; a box may be None per image, the
-        intrinsics are given for a whole call or not at all). The pipeline answers every
-        person it finds; each item then takes its own (people, min_score)."""
+        intrinsics are given for a whole call or not at all), each image's people as its item
+        asks (people, min_score): the pipeline lifts only them."""
         if self.pipeline is None:
             raise RuntimeError(self.pose_unavailable)
         out: list[PoseOutput | None] = [None] * len(items)
@@ -167,31 +167,27 @@ class Engine:
                 [items[i].image for i in idx],
                 bboxes=None if all(b is None for b in boxes) else boxes,
                 intrinsics=np.stack([items[i].intrinsics for i in idx]) if has_k else None,
-                people="all",
-                min_score=0.0,
+                people=[items[i].people for i in idx],
+                min_score=[items[i].min_score for i in idx],
             )
             info = self._batch_info(len(idx), res.timings_ms)
             for j, i in enumerate(idx):
-                out[i] = PoseOutput(_people(res.people_of(j), items[i]), info)
+                out[i] = PoseOutput(_people(res.people_of(j)), info)
         return out  # type: ignore[return-value]
 
 
-def _people(found: PipelineResult, item: PoseInput) -> list[Person]:
-    """An image's people, best first (every candidate the pipeline kept), as the item asks:
-    the best one, flagged whether it scores min_score (or had a box), or all that score it."""
-    scores = _numpy(found.score)
-    given = item.bbox is not None
-    people = [
+def _people(found: PipelineResult) -> list[Person]:
+    """An image's people as the pipeline answered them, best first."""
+    return [
         Person(
             _numpy(found.box[k]),
-            float(scores[k]),
-            given or bool(scores[k] >= item.min_score),
+            float(found.score[k]),
+            bool(found.person_found[k]),
             _numpy(found.joints_2d[k]),
             _numpy(found.joints_3d[k]),
             _numpy(found.confidence[k]),
             float(found.facing_camera[k]),
             found.joint_set[k],
         )
-        for k in range(len(scores))
+        for k in range(len(found.score))
     ]
-    return people[:1] if item.people == "best" else [p for p in people if p.person_found]

@@ -151,6 +151,24 @@ def test_batch_results_equal_one_by_one_results(pipeline, images):
         assert single.joint_set[0] == batch.joint_set[i]
 
 
+def test_each_image_is_answered_as_its_own_people_and_min_score_ask(pipeline, images):
+    both = pipeline.estimate(images[:2], people=["best", "all"], min_score=[0.2, 0.0])
+    alone = [
+        pipeline.estimate(images[:1]),
+        pipeline.estimate(images[1:2], people="all", min_score=0.0),
+    ]
+    for image, single in enumerate(alone):
+        mine = both.people_of(image)
+        assert len(mine.score) == len(single.score) and mine.joint_set == single.joint_set
+        torch.testing.assert_close(mine.score, single.score, atol=1e-4, rtol=0)
+        torch.testing.assert_close(mine.box, single.box, atol=1e-2, rtol=0)
+    assert len(both.people_of(0).score) == 1
+    with pytest.raises(ValueError, match="people"):
+        pipeline.estimate(images[:2], people=["best"])
+    with pytest.raises(ValueError, match="min_score"):
+        pipeline.estimate(images[:2], min_score=[0.2, 1.5])
+
+
 def test_energy_selection_and_single_set_variants_run(pipeline, images):
     pipeline.config = PipelineConfig(iterations=1, selection="energy")
     pipeline.lifter.configure(LifterConfig(joint_sets=("all",), weighting=False))
