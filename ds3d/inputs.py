@@ -1,5 +1,5 @@
 """Validation of user-supplied poses and cameras at the library's edge: shapes, dtypes, finite
-values. Everything past this point may assume well-formed tensors."""
+values within MAX_COORDINATE_PX. Everything past this point may assume well-formed tensors."""
 
 from __future__ import annotations
 
@@ -8,6 +8,11 @@ import torch
 
 from ds3d.errors import InvalidPose
 from ds3d.skeleton import NUM_JOINTS
+
+# The largest magnitude of a 2D coordinate or a camera matrix entry, px: far beyond any image
+# (a 40-megapixel photo's side is below 1e5), and small enough that the fits' squared
+# residuals stay finite in float32 (1e30 px squared overflows it, and the energy became NaN).
+MAX_COORDINATE_PX = 1e7
 
 
 def _tensor(value, name: str) -> torch.Tensor:
@@ -30,6 +35,8 @@ def joints_2d_batch(joints_2d) -> torch.Tensor:
         raise InvalidPose(f"joints_2d: expected {NUM_JOINTS} joints (LSP order), got {x.shape[1]}")
     if not bool(torch.isfinite(x).all()):
         raise InvalidPose("joints_2d: contains NaN or infinite coordinates")
+    if bool((x.abs() > MAX_COORDINATE_PX).any()):
+        raise InvalidPose(f"joints_2d: coordinates beyond +-{MAX_COORDINATE_PX:g} px")
     return x
 
 
@@ -59,4 +66,6 @@ def intrinsics_batch(intrinsics, batch: int) -> torch.Tensor | None:
         raise InvalidPose(f"intrinsics: expected shape ({batch}, 3, 3), got {tuple(k.shape)}")
     if not bool(torch.isfinite(k).all()) or bool((k[:, 0, 0] <= 0).any() | (k[:, 1, 1] <= 0).any()):
         raise InvalidPose("intrinsics: need finite values and positive focal lengths")
+    if bool((k.abs() > MAX_COORDINATE_PX).any()):
+        raise InvalidPose(f"intrinsics: entries beyond +-{MAX_COORDINATE_PX:g} px")
     return k

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ds3d.boxes import checked_box
-from ds3d.errors import InvalidBox
+from ds3d.errors import InvalidBox, InvalidImage
+from ds3d.image2d.search import SearchParams, check_searchable
 from ds3d.overlay import plot
 from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
 from ds3d.sources import Frame, frames
@@ -80,13 +81,18 @@ def _stream(sources, stride: int) -> Iterator[Frame]:
             yield from frames([source for _, source in items], stride)
 
 
-def _readable(stream: Iterator[Frame], bbox, on_skip) -> Iterator[Frame]:
-    """The frames that decoded (and that hold `bbox`); the others handed to on_skip."""
+def _readable(stream: Iterator[Frame], bbox, search: SearchParams, on_skip) -> Iterator[Frame]:
+    """The frames that decoded and that hold `bbox` (without one: that the search can take);
+    the others handed to on_skip."""
     for frame in stream:
-        if frame.error is None and bbox is not None:
+        if frame.error is None:
+            height, width = frame.image.shape[:2]
             try:
-                checked_box(bbox, frame.image.shape[1], frame.image.shape[0])
-            except InvalidBox as err:
+                if bbox is None:
+                    check_searchable(height, width, search)
+                else:
+                    checked_box(bbox, width, height)
+            except (InvalidBox, InvalidImage) as err:
                 frame.error = str(err)
         if frame.error is None:
             yield frame
@@ -120,12 +126,12 @@ def predict(
     at a time by `pipeline` (default: the bundled models, loaded once per process on `device`).
     stride: every n-th frame of a video or camera; bbox: one person box (x0, y0, x1, y1) px for
     every image (default: people are searched for); people, min_score, iterations: as
-    Pipeline.estimate. Unreadable sources (and images that cannot hold bbox) go to `on_skip`
-    (default: a logged warning)."""
+    Pipeline.estimate. Unreadable sources, images that cannot hold bbox and, without one,
+    images too elongated to search go to `on_skip` (default: a logged warning)."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     pipeline = pipeline or _default_pipeline(device)
-    readable = _readable(_stream(sources, stride), bbox, on_skip)
+    readable = _readable(_stream(sources, stride), bbox, pipeline.config.search, on_skip)
     while batch := list(itertools.islice(readable, batch_size)):
         result = pipeline.estimate(
             [f.image for f in batch],

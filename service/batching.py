@@ -13,12 +13,16 @@ computed: under overload the worker spends its time on answers still wanted.
 
 Each item gets its own outcome: when the batch function raises, the items of that batch are run
 again one by one, so that one bad item fails alone and its neighbours still get their results.
+Whatever the batch function raises (an Exception or not: SystemExit, KeyboardInterrupt), its
+items fail and the worker goes on. `stalled_s` says how long the worker has had work without
+finishing a batch, so that health checks can tell a worker stuck on one batch.
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
@@ -27,6 +31,8 @@ from typing import Generic, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+log = logging.getLogger("service")
 
 
 class QueueFull(Exception):
@@ -43,6 +49,30 @@ class DeadlineExceeded(Exception):
 
 class ShuttingDown(Exception):
     """The batcher is closing and takes no new work."""
+
+
+class BatchFailed(RuntimeError):
+    """The batch function raised something that is not an Exception; `__cause__` is it."""
+
+
+class ProgressClock:
+    """How long a queue has had work (items waiting or running) without finishing any:
+    monotonic seconds, 0 while the queue keeps up or is idle."""
+
+    def __init__(self) -> None:
+        self._since: float | None = None  # when the work not yet finished began waiting
+
+    def work_arrived(self) -> None:
+        if self._since is None:
+            self._since = time.monotonic()
+
+    def progressed(self, more_work: bool) -> None:
+        """A batch (or item) finished; `more_work`: others still wait or run."""
+        self._since = time.monotonic() if more_work else None
+
+    @property
+    def stalled_s(self) -> float:
+        return 0.0 if self._since is None else time.monotonic() - self._since
 
 
 class ItemFailed(Exception):
@@ -111,6 +141,7 @@ class MicroBatcher(Generic[T, R]):
         self._closing = False
         self._batch_estimate_s = 0.0
         self._worker: asyncio.Task[None] | None = None
+        self._clock = ProgressClock()
 
     @property
     def depth(self) -> int:
@@ -124,6 +155,16 @@ class MicroBatcher(Generic[T, R]):
     @property
     def running(self) -> bool:
         return self._worker is not None and not self._worker.done() and not self._closing
+
+    @property
+    def closing(self) -> bool:
+        """close() was called: the worker finishes what is queued and stops."""
+        return self._closing
+
+    @property
+    def stalled_s(self) -> float:
+        """Seconds the worker has had items waiting or running without finishing a batch."""
+        return self._clock.stalled_s
 
     def start(self) -> None:
         """Start the worker task on the running event loop."""
@@ -160,6 +201,7 @@ class MicroBatcher(Generic[T, R]):
         jobs = [_Job(item, loop.create_future(), now, now + timeout_s) for item in items]
         self._pending.setdefault(caller, collections.deque()).extend(jobs)
         self._depth += len(jobs)
+        self._clock.work_arrived()
         self._wakeup.set()
         futures = [job.future for job in jobs]
         _, not_done = await asyncio.wait(futures, timeout=timeout_s)
@@ -237,16 +279,15 @@ class MicroBatcher(Generic[T, R]):
                     live.append(job)
             if live:
                 await self._run(live, now, dropped)
-            elif dropped and self._on_batch is not None:
-                self._on_batch(BatchStats(0, 0.0, [], dropped))
+            elif dropped:
+                self._report(BatchStats(0, 0.0, [], dropped))
+            self._clock.progressed(more_work=self._depth > 0)
 
     async def _run(self, jobs: list[_Job[T, R]], started: float, dropped: int) -> None:
         loop = asyncio.get_running_loop()
         t0 = time.perf_counter()
         try:
-            results = await loop.run_in_executor(
-                self._executor, self._run_batch, [j.item for j in jobs]
-            )
+            results = await self._call(loop, [j.item for j in jobs])
             if len(results) != len(jobs):
                 raise RuntimeError(f"batch function gave {len(results)} results for {len(jobs)}")
             outcomes: list[tuple[bool, object]] = [(True, r) for r in results]
@@ -269,13 +310,32 @@ class MicroBatcher(Generic[T, R]):
                 job.future.set_result(value)
             else:
                 job.future.set_exception(value)
-        if self._on_batch is not None:
-            waits = [started - j.enqueued for j in jobs]
-            self._on_batch(BatchStats(len(jobs), seconds, waits, dropped))
+        self._report(BatchStats(len(jobs), seconds, [started - j.enqueued for j in jobs], dropped))
+
+    async def _call(self, loop: asyncio.AbstractEventLoop, items: list[T]) -> Sequence[R]:
+        """The batch function on the executor; what is not an Exception raised as BatchFailed,
+        so that it fails these items and not the worker."""
+        try:
+            return await loop.run_in_executor(self._executor, self._run_batch, items)
+        except Exception:
+            raise
+        except BaseException as error:
+            if isinstance(error, asyncio.CancelledError):  # the worker itself is cancelled
+                raise
+            raise BatchFailed(f"the batch failed: {type(error).__name__}: {error}") from error
 
     async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> tuple[bool, object]:
         try:
-            (result,) = await loop.run_in_executor(self._executor, self._run_batch, [item])
+            (result,) = await self._call(loop, [item])
             return True, result
         except Exception as e:
             return False, e
+
+    def _report(self, stats: BatchStats) -> None:
+        """on_batch(stats); a failing observer is logged, not let through to the worker."""
+        if self._on_batch is None:
+            return
+        try:
+            self._on_batch(stats)
+        except Exception:
+            log.exception("the batch observer failed")

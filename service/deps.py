@@ -3,26 +3,49 @@ loaded models, each read from `request.app.state`, where `create_app` and its li
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Protocol, TypeVar
 
 from fastapi import Depends, Request
 from starlette.datastructures import State
 
-from service.batching import MicroBatcher
 from service.engine import Engine, LiftInput, LiftOutput, PoseInput, PoseOutput
 from service.errors import ApiError
 from service.metrics import Metrics
 from service.settings import Settings
 
+T = TypeVar("T", contravariant=True)
+R = TypeVar("R", covariant=True)
+
+
+class ModelQueue(Protocol[T, R]):
+    """A model queue as the routes and the health checks use it: service.batching.MicroBatcher
+    in the plain service, service.ray_serve.ServeQueue on Ray Serve."""
+
+    @property
+    def depth(self) -> int: ...
+    @property
+    def saturated(self) -> bool: ...
+    @property
+    def running(self) -> bool: ...
+    @property
+    def closing(self) -> bool: ...
+    @property
+    def stalled_s(self) -> float: ...
+    async def submit(self, item: T, timeout_s: float, caller: str = "") -> R: ...
+    async def submit_many(
+        self, items: Sequence[T], timeout_s: float, caller: str = ""
+    ) -> list[R]: ...
+
 
 @dataclass
 class Runtime:
-    """What the lifespan loads: the engine and one batcher per model queue."""
+    """What the lifespan loads: the engine and one queue per model route."""
 
     engine: Engine
-    lift: MicroBatcher[LiftInput, LiftOutput]
-    pose: MicroBatcher[PoseInput, PoseOutput] | None
+    lift: ModelQueue[LiftInput, LiftOutput]
+    pose: ModelQueue[PoseInput, PoseOutput] | None
 
 
 class RuntimeHandle:
@@ -33,9 +56,13 @@ class RuntimeHandle:
     def __init__(self, state: State):
         self._state = state
 
+    def loaded(self) -> Runtime | None:
+        """The loaded Runtime, or None while there is none."""
+        return getattr(self._state, "runtime", None)
+
     def require(self) -> Runtime:
         """The loaded Runtime, or ApiError 503 not_ready (with Retry-After) while there is none."""
-        runtime = getattr(self._state, "runtime", None)
+        runtime = self.loaded()
         if runtime is None:
             retry_after = {"Retry-After": str(self._state.settings.retry_after_s)}
             raise ApiError(503, "not_ready", "the model is loading", retry_after)

@@ -53,6 +53,7 @@ from service.batching import (
     CallerQueueFull,
     DeadlineExceeded,
     ItemFailed,
+    ProgressClock,
     QueueFull,
     ShuttingDown,
 )
@@ -77,10 +78,11 @@ SCALING = {
 
 
 class ServeQueue(Generic[T, R]):
-    """One model queue of a replica, with the MicroBatcher interface the routes and /readyz use
-    (submit, submit_many, depth, saturated, running). Each item is one call of `run_item`, a
-    `@serve.batch` method: Ray forms the batches. `run_item` answers an item's output or the
-    exception it failed with."""
+    """One model queue of a replica, with the MicroBatcher interface the routes and the health
+    checks use (submit, submit_many, depth, saturated, running, stalled_s). Each item is one call
+    of `run_item`, a `@serve.batch` method: Ray forms the batches. `run_item` answers an item's
+    output or the exception it failed with. (Each request here gives up at its deadline, so
+    stalled_s stays below request_timeout_s: a stuck replica is Ray's health check's to find.)"""
 
     def __init__(
         self,
@@ -94,10 +96,20 @@ class ServeQueue(Generic[T, R]):
         self.depth = 0  # items of this replica not yet answered
         self._per_caller: collections.Counter[str] = collections.Counter()
         self.running = True
+        self._clock = ProgressClock()
 
     @property
     def saturated(self) -> bool:
         return self.depth >= self.max_queue
+
+    @property
+    def closing(self) -> bool:
+        return not self.running
+
+    @property
+    def stalled_s(self) -> float:
+        """Seconds this replica has had items in flight without answering one."""
+        return self._clock.stalled_s
 
     async def submit(self, item: T, timeout_s: float, caller: str = "") -> R:
         try:
@@ -117,6 +129,7 @@ class ServeQueue(Generic[T, R]):
             raise CallerQueueFull(f"{waiting} items of this caller wait, its limit is {cap}")
         self.depth += len(items)
         self._per_caller[caller] += len(items)
+        self._clock.work_arrived()
         try:
             calls = asyncio.gather(*(self._run_item(item) for item in items))
             outcomes = await asyncio.wait_for(calls, timeout_s)
@@ -124,6 +137,7 @@ class ServeQueue(Generic[T, R]):
             raise DeadlineExceeded(f"not answered within {timeout_s:g} s") from None
         finally:
             self.depth -= len(items)
+            self._clock.progressed(more_work=self.depth > 0)
             self._per_caller[caller] -= len(items)
             if not self._per_caller[caller]:
                 del self._per_caller[caller]

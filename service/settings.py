@@ -68,6 +68,20 @@ class Settings(BaseSettings):
         gt=0.0,
         description="Seconds after its arrival at which a request not yet answered gets 504.",
     )
+    ready_stall_s: float = Field(
+        30.0,
+        gt=0.0,
+        description="Seconds the model worker may hold work (a batch running, or items "
+        "waiting) without finishing a batch before /readyz answers 503 stalled, so that no "
+        "more traffic is sent to it.",
+    )
+    live_stall_s: float = Field(
+        300.0,
+        gt=0.0,
+        description="Seconds of the same before /healthz answers 503 too, so that a supervisor "
+        "restarts the replica (a thread stuck in a batch cannot be stopped from within). Well "
+        "above the longest batch: max_batch_size images of the slowest kind.",
+    )
     torch_threads: int = Field(
         default_factory=cpu_count_up_to_2,
         ge=1,
@@ -85,7 +99,8 @@ class Settings(BaseSettings):
         40_000_000,
         ge=1,
         description="Largest image to decode, in pixels (width x height, read from its header); "
-        "a larger one gets 422.",
+        "a larger one gets 422. (An image searched for people must also be at most "
+        "ds3d.image2d.search.SearchParams.max_aspect_ratio times as long as wide, else 422.)",
     )
     max_lift_items: int = Field(
         256, ge=1, description="Upper bound of items in one /v1/lift request."

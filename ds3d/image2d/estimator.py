@@ -49,7 +49,7 @@ from ds3d.image2d.model_files import load_model
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
-from ds3d.image2d.search import Proposals, SearchParams, propose
+from ds3d.image2d.search import Proposals, SearchParams, check_searchable, propose
 from ds3d.paths import MODELS_DIR, require_models
 from ds3d.threads import map_on_threads, split_rows
 
@@ -142,13 +142,16 @@ class PoseEstimator2D:
     ) -> list[Proposals]:
         """Where the people are in B whole images (H_i, W_i, 3) uint8 RGB: ds3d.image2d.search,
         the images split over torch.get_num_threads() threads as in estimate(). Raises
-        InvalidImage for a malformed image, DataFormatError without a joint network."""
+        InvalidImage for a malformed image or one too elongated to search (before any work),
+        DataFormatError without a joint network."""
         if self.jointnet is None:
             raise DataFormatError("the search for people needs the joint network")
         working_crops(images, None, self.params)  # checks the images
         if not images:
             return []
         p, search = self.params, search or SearchParams()
+        for image in images:
+            check_searchable(image.shape[0], image.shape[1], search)
 
         def run(rows: torch.Tensor) -> list[Proposals]:
             return [

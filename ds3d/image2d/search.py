@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from ds3d.boxes import person_boxes, suppress
+from ds3d.errors import InvalidImage
 from ds3d.image2d.crops import resize_image
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import STRIDE, JointNet, logits_to_grid, padded_logits
@@ -49,6 +50,10 @@ class SearchParams:
     max_people: at most this many proposals per image go on to the full 2D stage.
     proposal_floor: proposals whose root score is below it do not (the best one always does).
     score_center, score_width: person_probability = sigmoid((psm score - center) / width).
+    max_aspect_ratio: the longest image side searched, in multiples of the shortest. Every
+        level scales the image height to about the same number of px, so a level's pixels
+        grow with the ratio and its PSM's max-convolution with the ratio squared: without a
+        bound, one 8 x 8000 strip asked for 800 GB.
     """
 
     min_height: float = 0.15
@@ -62,6 +67,7 @@ class SearchParams:
     proposal_floor: float = 120.0
     score_center: float = -225.0
     score_width: float = 9.7
+    max_aspect_ratio: float = 8.0
 
 
 @dataclass
@@ -71,6 +77,18 @@ class Proposals:
 
     poses: np.ndarray
     scores: np.ndarray
+
+
+def check_searchable(height: int, width: int, params: SearchParams) -> None:
+    """Raises InvalidImage for an image (height, width px) too elongated to search for people
+    (SearchParams.max_aspect_ratio); with a person box it needs no search."""
+    ratio = max(height, width) / max(min(height, width), 1)
+    if ratio > params.max_aspect_ratio:
+        raise InvalidImage(
+            f"a {width} x {height} image is {ratio:.3g} times as long as it is wide, over "
+            f"max_aspect_ratio = {params.max_aspect_ratio:g} of the search for people: "
+            "crop it, or give the person's box"
+        )
 
 
 def level_extents(height: int, params: SearchParams) -> list[float]:

@@ -50,6 +50,7 @@ async def pose(
     rt = runtime.require()
     if rt.pose is None:
         raise ApiError(503, "model_unavailable", rt.engine.pose_unavailable or "no 2D stage")
+    rt.engine.check_pose_input(item)
     out = await rt.pose.submit(item, settings.request_timeout_s, caller)
     common = {
         "joint_names": list(JOINT_NAMES),

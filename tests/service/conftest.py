@@ -60,6 +60,15 @@ def engine():
     return Engine.load(MODEL_DIR, "cpu")
 
 
+@pytest.fixture(scope="session")
+def pose_engine(model_dir):
+    """Models with a 2D stage (tests/conftest.py's model_dir: a --small 2D model beside the
+    bundled pose database), so that /v1/pose runs the real Pipeline."""
+    engine = Engine.load(model_dir, "cpu")
+    assert engine.pipeline is not None, engine.pose_unavailable
+    return engine
+
+
 @pytest.fixture
 def load_inputs(data_dir, tmp_path) -> tuple[Path, Path]:
     """(poses file, images folder) for the load tools (soak, crash test): 64 LSP test poses in

@@ -17,7 +17,6 @@ import pytest
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
-from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import DataFormatError
 from ds3d.image_io import read_image
@@ -25,7 +24,6 @@ from ds3d.paths import MODELS_DIR
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
 from ds3d.threads import intra_op_threads
 from service.client import AsyncPoseClient, PoseClient, ServiceError
-from service.engine import Engine
 from service.settings import Settings
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
@@ -271,18 +269,6 @@ def test_pose_on_a_valid_image(url, engine):
         else:
             res = client.estimate(jpeg())
             assert res.joints_2d.shape == (14, 2) and res.joints_3d.shape == (14, 3)
-
-
-@pytest.fixture(scope="module")
-def pose_engine(data_dir, tmp_path_factory):
-    """Models with a 2D stage: a --small 2D model trained here (seconds) beside a link to the
-    pose database, so that /v1/pose runs the real Pipeline."""
-    out = tmp_path_factory.mktemp("models")
-    assert cli(["train-2d", "--small", "--no-eval", "--out", str(out / "image2d")]) == 0
-    (out / "posedb").symlink_to(MODEL_DIR / "posedb")
-    engine = Engine.load(out, "cpu")
-    assert engine.pipeline is not None, engine.pose_unavailable
-    return engine
 
 
 def test_pose_matches_the_pipeline(pose_engine, serving):
