@@ -1,5 +1,6 @@
 # CPU image of the ds3d service: python:3.11-slim, CPU torch pinned and installed first (so that
-# no CUDA torch is pulled in), the project with its [service] extra, the bundled models baked in,
+# no CUDA torch is pulled in), the locked dependencies (requirements/service.txt: the runtime and
+# the [service] extra, each pinned and hash-checked), the project, the bundled models baked in,
 # a non-root user, a health check on /readyz, uvicorn (through `ds3d-serve`, which runs itself
 # under jemalloc: flat memory, service/allocator.py). Closed by default: it refuses to start
 # without DS3D_API_KEYS (keys, or a file of keys mounted as a secret).
@@ -11,9 +12,9 @@ RUN apt-get update \
 
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-# The project's extras to install: `--build-arg EXTRAS=service,ray` makes the image of the Ray
+# The lock to install, requirements/${LOCK}.txt: `--build-arg LOCK=ray` makes the image of the Ray
 # Serve path (docker/k8s/rayservice.yaml).
-ARG EXTRAS=service
+ARG LOCK=service
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
@@ -29,14 +30,12 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"
 
 WORKDIR /app
-# Dependencies first, read from pyproject.toml (a layer that survives code edits), then the
-# models and the code.
-COPY pyproject.toml README.md ./
-RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
-extras = [d for e in '${EXTRAS}'.split(',') for d in p['optional-dependencies'][e]]; \
-print('\n'.join(p['dependencies'] + extras))" > /tmp/requirements.txt \
-    && pip install --no-cache-dir -r /tmp/requirements.txt \
+# Dependencies first, from the lock (a layer that survives code edits), then the models and the
+# code. The project goes in with --no-deps: the lock is all it gets.
+COPY requirements/${LOCK}.txt /tmp/requirements.txt
+RUN pip install --no-cache-dir --require-hashes -r /tmp/requirements.txt \
     && useradd --create-home --uid 10001 --user-group ds3d
+COPY pyproject.toml README.md ./
 # The models before the code (they change less often); both before the install, which maps the
 # package ds3d.models onto models/ (pyproject.toml). Editable, so that the image holds one copy.
 COPY models models

@@ -1,23 +1,51 @@
 # Every target creates .venv when missing: torch 2.13.0 (CPU) first, so that no other torch is
-# pulled, then the project with its extras. PyPI's torch wheel for Linux is the CUDA build: the CPU
-# one comes from PyTorch's index (TORCH_INDEX), tried once (--retries 0), so that where it cannot be
-# reached pip goes on at once with the wheels it can see (PyPI, a local wheelhouse).
+# pulled, then the locked dependencies, then the project. PyPI's torch wheel for Linux is the CUDA
+# build: the CPU one comes from PyTorch's index (TORCH_INDEX), tried once (--retries 0), so that
+# where it cannot be reached pip goes on at once with the wheels it can see (PyPI, a local
+# wheelhouse).
+# The locks in requirements/ pin every other package, with its hashes, for Python 3.11 on Linux
+# x86_64: dev.txt (runtime, [service], [dev]; installed here), service.txt (runtime, [service]; the
+# Docker image), ray.txt (runtime, [service], [ray]; added by .ci/run, or the Ray image).
+# `make lock` refreshes them from pyproject.toml's ranges (which stay what other installs of the
+# library see); the project itself is installed with --no-deps, so nothing unlocked comes in.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+PIP_TOOLS := pip-tools==7.6.2
+LOCKS := requirements/dev.txt requirements/service.txt requirements/ray.txt
 
-.PHONY: install test lint audit eval bench build-db serve clean
+.PHONY: install lock test lint audit eval bench build-db serve clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml requirements/dev.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet --retries 0 --extra-index-url $(TORCH_INDEX) torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[dev,service]'
+	$(BIN)/pip install --quiet --require-hashes -r requirements/dev.txt
+	$(BIN)/pip install --quiet --no-deps -e .
+	$(BIN)/pip check
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# Resolves afresh, to the newest versions that pyproject.toml's ranges allow, against torch's CPU
+# build (requirements/torch.txt), and leaves torch out of the locks. service.txt and ray.txt are
+# constrained by dev.txt, so that a package has one version in all three.
+PIP_COMPILE := CUSTOM_COMPILE_COMMAND="make lock" $(BIN)/pip-compile --quiet --upgrade \
+	--generate-hashes --strip-extras --no-emit-index-url --no-emit-find-links \
+	--unsafe-package torch -c requirements/torch.txt \
+	--extra-index-url $(TORCH_INDEX) --pip-args --retries=0
+
+lock:
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet $(PIP_TOOLS)
+	$(PIP_COMPILE) --extra service --extra dev -o requirements/dev.txt pyproject.toml
+	$(PIP_COMPILE) -c requirements/dev.txt --extra service \
+		-o requirements/service.txt pyproject.toml
+	$(PIP_COMPILE) -c requirements/dev.txt --extra service --extra ray \
+		-o requirements/ray.txt pyproject.toml
+	! grep -iE '^(torch|triton|nvidia-)' $(LOCKS)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
