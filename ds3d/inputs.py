@@ -13,6 +13,9 @@ from ds3d.skeleton import NUM_JOINTS
 # (a 40-megapixel photo's side is below 1e5), and small enough that the fits' squared
 # residuals stay finite in float32 (1e30 px squared overflows it, and the energy became NaN).
 MAX_COORDINATE_PX = 1e7
+# The shortest focal length taken, px: below it a camera would see more than a half-space of a
+# few-pixel image; in float32 a tinier positive one may round to zero.
+MIN_FOCAL_PX = 1.0
 
 
 def _tensor(value, name: str) -> torch.Tensor:
@@ -55,8 +58,8 @@ def visibility_batch(visible, batch: int) -> torch.Tensor:
 
 
 def intrinsics_batch(intrinsics, batch: int) -> torch.Tensor | None:
-    """None or (B, 3, 3) / (3, 3) pinhole matrices -> (B, 3, 3) float32 with positive focal
-    lengths."""
+    """None or (B, 3, 3) / (3, 3) pinhole matrices -> (B, 3, 3) float32 with focal lengths of
+    at least MIN_FOCAL_PX."""
     if intrinsics is None:
         return None
     k = _tensor(intrinsics, "intrinsics")
@@ -64,8 +67,11 @@ def intrinsics_batch(intrinsics, batch: int) -> torch.Tensor | None:
         k = k[None].expand(batch, -1, -1)
     if tuple(k.shape) != (batch, 3, 3):
         raise InvalidPose(f"intrinsics: expected shape ({batch}, 3, 3), got {tuple(k.shape)}")
-    if not bool(torch.isfinite(k).all()) or bool((k[:, 0, 0] <= 0).any() | (k[:, 1, 1] <= 0).any()):
-        raise InvalidPose("intrinsics: need finite values and positive focal lengths")
+    focal = torch.stack((k[:, 0, 0], k[:, 1, 1]), -1)
+    if not bool(torch.isfinite(k).all()) or bool((focal < MIN_FOCAL_PX).any()):
+        raise InvalidPose(
+            f"intrinsics: need finite values and focal lengths of at least {MIN_FOCAL_PX:g} px"
+        )
     if bool((k.abs() > MAX_COORDINATE_PX).any()):
         raise InvalidPose(f"intrinsics: entries beyond +-{MAX_COORDINATE_PX:g} px")
     return k

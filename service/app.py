@@ -65,7 +65,18 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     schemes = API_KEY_SCHEMES if app.state.access.keys is not None else []
     for router in ROUTERS:
         app.include_router(router, dependencies=schemes if router in API_ROUTERS else [])
+    app.openapi = partial(openapi_with_limits, app, settings)  # type: ignore[method-assign]
     return app
+
+
+def openapi_with_limits(app: FastAPI, settings: Settings) -> dict:
+    """The app's OpenAPI document with the limits that its settings set, so that clients
+    generated from it know them: the items of one /v1/lift request."""
+    if app.openapi_schema is None:
+        schema = FastAPI.openapi(app)
+        items = schema["components"]["schemas"]["LiftRequest"]["properties"]["items"]
+        items["maxItems"] = min(settings.max_lift_items, settings.max_lift_queue)
+    return app.openapi_schema
 
 
 def serving_lifespan(

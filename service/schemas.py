@@ -10,12 +10,23 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
 from ds3d.skeleton import NUM_JOINTS
 
 Point2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 Point3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Row3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Matrix3 = Annotated[list[Row3], Field(min_length=3, max_length=3)]
+# What the library takes (ds3d.inputs), said in the schema: coordinates and camera entries within
+# MAX_COORDINATE_PX, focal lengths of at least MIN_FOCAL_PX, at least two joints visible.
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_PX, le=MAX_COORDINATE_PX)]
+Focal = Annotated[float, Field(ge=MIN_FOCAL_PX, le=MAX_COORDINATE_PX)]
+InputPoint2 = Annotated[list[Coordinate], Field(min_length=2, max_length=2)]
+Intrinsics = tuple[
+    tuple[Focal, Coordinate, Coordinate],
+    tuple[Coordinate, Focal, Coordinate],
+    tuple[Coordinate, Coordinate, Coordinate],
+]
+Box = tuple[Coordinate, Coordinate, Coordinate, Coordinate]
+MIN_VISIBLE = 2  # ds3d.inputs.visibility_batch
 
 
 class _Strict(BaseModel):
@@ -23,14 +34,19 @@ class _Strict(BaseModel):
 
 
 class LiftItem(_Strict):
-    joints_2d: Annotated[list[Point2], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] = Field(
-        description="14 joints (LSP order) as [x, y] pixels"
+    joints_2d: Annotated[list[InputPoint2], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] = (
+        Field(description="14 joints (LSP order) as [x, y] pixels")
     )
-    intrinsics: Matrix3 | None = Field(
+    intrinsics: Intrinsics | None = Field(
         None, description="3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]; omitted: unknown"
     )
     visible: Annotated[list[bool], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] | None = (
-        Field(None, description="14 flags, false for a joint whose 2D position is a guess")
+        Field(
+            None,
+            description="14 flags, false for a joint whose 2D position is a guess; at least "
+            f"{MIN_VISIBLE} true",
+            json_schema_extra={"contains": {"const": True}, "minContains": MIN_VISIBLE},
+        )
     )
 
 
@@ -113,9 +129,13 @@ class Health(BaseModel):
 ERROR_RESPONSES = {
     status: {"model": ErrorResponse, "description": what}
     for status, what in {
+        400: "a body that cannot be parsed as its content type says (e.g. broken multipart)",
         413: "body or image over the size limit",
         415: "unsupported content type",
         422: "invalid input (malformed JSON, wrong joint count, non-finite numbers, bad image)",
+        429: "over this caller's request rate or queue share (see Retry-After)",
+        431: "request head over max_header_bytes",
+        500: "an unexpected failure of the model on this request",
         503: "queue full, shutting down, or model unavailable (see Retry-After)",
         504: "not answered before the request deadline",
     }.items()

@@ -4,11 +4,10 @@ parameters), and the decoded image. Every check here runs before the model is co
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
+from pydantic import TypeAdapter, ValidationError
 from starlette.datastructures import FormData, UploadFile
 
 from ds3d.boxes import checked_box
@@ -16,14 +15,39 @@ from ds3d.errors import ImageTooLarge
 from ds3d.image_io import decode_image
 from service.engine import PoseInput
 from service.errors import ApiError
+from service.schemas import Box, Intrinsics
 from service.settings import Settings
 
 # Room for the multipart envelope and the small form fields around the image.
 MULTIPART_OVERHEAD_BYTES = 64 * 1024
 
-# The OpenAPI request body of /v1/pose: the route reads the body itself (below), so FastAPI
-# cannot infer it.
-POSE_BODY = {
+# The box and the intrinsics of /v1/pose travel as JSON text (query parameters or form fields);
+# their schemas are those of /v1/lift's values.
+BOX = TypeAdapter(Box)
+INTRINSICS = TypeAdapter(Intrinsics)
+BOX_DOC = "[x0, y0, x1, y1] px, x1 > x0 and y1 > y0, overlapping the image; skips the search"
+INTRINSICS_DOC = "3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] px"
+
+
+def _json_text(adapter: TypeAdapter, description: str) -> dict:
+    return {"description": description, **adapter.json_schema()}
+
+
+# The OpenAPI of /v1/pose's JSON-valued parameters and its body: the route reads them itself
+# (below), so FastAPI cannot infer them.
+POSE_OPENAPI = {
+    "parameters": [
+        {
+            "name": name,
+            "in": "query",
+            "required": False,
+            "content": {"application/json": {"schema": _json_text(adapter, doc)}},
+        }
+        for name, adapter, doc in (
+            ("bbox", BOX, BOX_DOC),
+            ("intrinsics", INTRINSICS, INTRINSICS_DOC),
+        )
+    ],
     "requestBody": {
         "required": True,
         "content": {
@@ -31,28 +55,33 @@ POSE_BODY = {
                 "schema": {
                     "type": "object",
                     "required": ["image"],
+                    "additionalProperties": False,
                     "properties": {
                         "image": {"type": "string", "format": "binary"},
-                        "bbox": {"type": "string", "description": "JSON [x0, y0, x1, y1] px"},
-                        "intrinsics": {"type": "string", "description": "JSON 3x3 matrix"},
+                        "bbox": _json_text(BOX, BOX_DOC),
+                        "intrinsics": _json_text(INTRINSICS, INTRINSICS_DOC),
                     },
-                }
+                },
+                "encoding": {
+                    "image": {"contentType": "image/*"},
+                    "bbox": {"contentType": "application/json"},
+                    "intrinsics": {"contentType": "application/json"},
+                },
             },
             "image/*": {"schema": {"type": "string", "format": "binary"}},
         },
-    }
+    },
 }
 
 
-async def read_pose_input(
-    request: Request, settings: Settings, bbox: str | None, intrinsics: str | None
-) -> PoseInput:
-    """The image, box and intrinsics of a /v1/pose request. bbox, intrinsics: the query
-    parameters (JSON text), which multipart form fields of the same names override. Raises
+async def read_pose_input(request: Request, settings: Settings) -> PoseInput:
+    """The image, box and intrinsics of a /v1/pose request. bbox, intrinsics: JSON text in
+    the query parameters, which multipart form fields of the same names override. Raises
     ApiError 413 (too large), 415 (not an image content type), 422 (missing field, bad array),
     InvalidImage (an image that does not decode) or InvalidBox (a box the image cannot hold)."""
     limit = settings.max_image_bytes
     ctype = request.headers.get("content-type", "").lower()
+    bbox, intrinsics = request.query_params.get("bbox"), request.query_params.get("intrinsics")
     _refuse_declared_oversize(request, limit)
     if ctype.startswith("multipart/form-data"):
         form = await request.form(max_files=1, max_fields=8)
@@ -62,8 +91,8 @@ async def read_pose_input(
     else:
         _require_image_type(ctype)
         data = await _read_capped_body(request, limit)
-    box = parse_array(bbox, (4,), "bbox")
-    k = parse_array(intrinsics, (3, 3), "intrinsics")
+    box = parse_json(bbox, BOX, "bbox")
+    k = parse_json(intrinsics, INTRINSICS, "intrinsics")
     try:
         image = await run_in_threadpool(decode_image, data, settings.max_image_pixels)
     except ImageTooLarge as exc:
@@ -119,14 +148,15 @@ async def _read_capped_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def parse_array(text: str | None, shape: tuple[int, ...], name: str) -> np.ndarray | None:
-    """A JSON array form field or query parameter -> float32 array of `shape`, or None."""
+def parse_json(text: str | None, adapter: TypeAdapter, name: str) -> np.ndarray | None:
+    """A JSON form field or query parameter, validated by `adapter` -> float32 array, or None
+    when absent; 422 invalid_request naming what is wrong."""
     if text is None or text == "":
         return None
     try:
-        arr = np.asarray(json.loads(text), dtype=np.float32)
-    except (ValueError, TypeError) as e:
-        raise ApiError(422, "invalid_request", f"{name}: not a JSON array of numbers") from e
-    if arr.shape != shape or not np.isfinite(arr).all():
-        raise ApiError(422, "invalid_request", f"{name}: need finite numbers of shape {shape}")
-    return arr
+        value = adapter.validate_json(text)
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = "".join(f"[{p}]" for p in first["loc"])
+        raise ApiError(422, "invalid_request", f"{name}{where}: {first['msg']}") from e
+    return np.asarray(value, dtype=np.float32)

@@ -15,7 +15,7 @@ from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
 from service.engine import request_timings_ms
 from service.errors import ApiError
 from service.schemas import ERROR_RESPONSES, PeopleResponse, Person, PoseResponse
-from service.uploads import POSE_BODY, read_pose_input
+from service.uploads import POSE_OPENAPI, read_pose_input
 
 router = APIRouter()
 
@@ -24,15 +24,13 @@ router = APIRouter()
     "/v1/pose",
     response_model=PoseResponse | PeopleResponse,
     responses=ERROR_RESPONSES,
-    openapi_extra=POSE_BODY,
+    openapi_extra=POSE_OPENAPI,
 )
 async def pose(
     request: Request,
     settings: SettingsDep,
     runtime: RuntimeHandleDep,
     caller: CallerDep,
-    bbox: str | None = Query(None, description="JSON [x0, y0, x1, y1] pixels; skips the search"),
-    intrinsics: str | None = Query(None, description="JSON 3x3 camera matrix"),
     people: Literal["best", "all"] = Query(
         "best", description="best: the likeliest person, as one pose; all: every person found"
     ),
@@ -41,11 +39,12 @@ async def pose(
     ),
 ) -> PoseResponse | PeopleResponse:
     """2D and 3D poses of the people in one image: multipart field `image`, or the raw image
-    as the body with an image/* content type. Without a bbox the image is searched for people
+    as the body with an image/* content type; `bbox` and `intrinsics` as JSON (query parameters
+    or form fields). Without a bbox the image is searched for people
     of any size. The image is checked (size, header, decoding) before the model is consulted,
     so a bad image is reported whatever the deployment."""
     t0 = time.perf_counter()
-    item = await read_pose_input(request, settings, bbox, intrinsics)
+    item = await read_pose_input(request, settings)
     item = dataclasses.replace(item, people=people, min_score=min_score)
     rt = runtime.require()
     if rt.pose is None:
