@@ -19,6 +19,8 @@ from service.allocator import run_under_jemalloc
 from service.auth import InvalidKeys
 from service.settings import Settings
 
+ONEDNN_CACHE_ENTRIES = 4
+
 
 def parse_settings(argv: list[str] | None = None) -> Settings:
     """The Settings of a `ds3d-serve` command line (argv: the arguments, default sys.argv[1:]):
@@ -62,6 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         run_under_jemalloc(args)  # returns when jemalloc is missing or already loaded
     # Before torch loads: keep OpenMP to the configured threads too.
     os.environ.setdefault("OMP_NUM_THREADS", str(settings.torch_threads))
+    # oneDNN keeps the primitives (and their buffers) of the last 1,024 layer shapes it ran, and
+    # every new image size brings new shapes: a cache that grows for as long as the service
+    # meets new sizes, and that rarely hits (`ds3d bench memory` over 360 LSP images with glibc:
+    # +15.5 % RSS with the default, +8.4 % with 16 entries, +6.0 % with 4, at the same speed).
+    os.environ.setdefault("ONEDNN_PRIMITIVE_CACHE_CAPACITY", str(ONEDNN_CACHE_ENTRIES))
 
     import uvicorn
 
