@@ -317,11 +317,9 @@ class MicroBatcher(Generic[T, R]):
         so that it fails these items and not the worker."""
         try:
             return await loop.run_in_executor(self._executor, self._run_batch, items)
-        except Exception:
+        except (Exception, asyncio.CancelledError):  # cancelled: the worker itself, at close
             raise
         except BaseException as error:
-            if isinstance(error, asyncio.CancelledError):  # the worker itself is cancelled
-                raise
             raise BatchFailed(f"the batch failed: {type(error).__name__}: {error}") from error
 
     async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> tuple[bool, object]:

@@ -32,9 +32,8 @@ class IndexConfig:
     """How an index is built. kind: "flat" (exact) or "ivf" (inverted file with `nlist` lists,
     approximate; how many lists a search visits is a search-time setting, `nprobe`). storage:
     "f32" or "f16" (scalar-quantised half floats: half the memory, the same neighbours up to
-    rounding, about 3 ms more per query of the five sets). f16 by default: the indices are
-    nearly all of a served model's memory (1.2 GB in f32 for the bundled database), and
-    Human3.6M S11 gives 53.5 mm with either (docs/RESULTS.md)."""
+    rounding, and faster searches at the padded dimensions, index_dim). f16 by default: the
+    indices are nearly all of a served model's memory (docs/RESULTS.md, retrieval)."""
 
     kind: str = "ivf"
     nlist: int = 1024
@@ -59,9 +58,29 @@ def database_digest(db: PoseDatabase) -> str:
     return digest.hexdigest()[:16]
 
 
+# faiss compares float16 codes 8 dimensions at a time (SIMD) only where the dimension is a
+# multiple of 8, else one at a time: 1.8x slower than float32 at 28 dimensions, 1.7x faster at
+# 32 (IVF, nprobe 8, one thread). The vectors are padded with zeros to such a dimension, which
+# changes no distance.
+SIMD_DIMS = 8
+
+
+def index_dim(joint_set: str) -> int:
+    """The dimension of `joint_set`'s index: its 2D coordinates, padded to SIMD_DIMS."""
+    return -(-2 * len(JOINT_SETS[joint_set]) // SIMD_DIMS) * SIMD_DIMS
+
+
+def padded(vectors: np.ndarray, dim: int) -> np.ndarray:
+    """(N, d) float32 -> (N, dim) float32, zeros after the d given columns."""
+    out = np.zeros((len(vectors), dim), np.float32)
+    out[:, : vectors.shape[1]] = vectors
+    return out
+
+
 def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int = 0):
-    """A faiss index over db's normalised 2D vectors of `joint_set`, ids = entry ids."""
-    dim = 2 * len(JOINT_SETS[joint_set])
+    """A faiss index over db's normalised 2D vectors of `joint_set` (zero-padded to
+    index_dim), ids = entry ids."""
+    dim = index_dim(joint_set)
     index = faiss.index_factory(dim, config.factory_string())
     if not index.is_trained:
         # Train the coarse quantiser on a fixed subsample: 64 points per list is what faiss's
@@ -71,9 +90,9 @@ def build_index(db: PoseDatabase, joint_set: str, config: IndexConfig, seed: int
         subset = PoseDatabase(
             db.poses[np.sort(rng.choice(len(db.poses), sample_poses, False))], db.rotations
         )
-        index.train(np.concatenate(list(subset.projected_2d(joint_set))))
+        index.train(padded(np.concatenate(list(subset.projected_2d(joint_set))), dim))
     for block in db.projected_2d(joint_set):
-        index.add(block)
+        index.add(padded(block, dim))
     return index
 
 
@@ -91,7 +110,8 @@ class PoseRetriever:
 
     def _load_or_build(self, joint_set: str, cache: bool):
         settings = "-".join(f"{k}{v}" for k, v in asdict(self.config).items())
-        path = cache_dir() / f"{database_digest(self.db)}-{settings}-{joint_set}.faiss"
+        dim = index_dim(joint_set)
+        path = cache_dir() / f"{database_digest(self.db)}-{settings}-{joint_set}-d{dim}.faiss"
         if cache and path.is_file():
             return faiss.read_index(str(path))
         index = build_index(self.db, joint_set, self.config)
@@ -114,7 +134,6 @@ class PoseRetriever:
             if hasattr(index, "nprobe"):
                 index.nprobe = nprobe
             query = normalize_2d(joints_2d[:, list(JOINT_SETS[name])].float().cpu())
-            query = np.ascontiguousarray(query.reshape(len(query), -1).numpy())
-            _, found = index.search(query, k)
+            _, found = index.search(padded(query.reshape(len(query), -1).numpy(), index.d), k)
             ids.append(torch.from_numpy(found))
         return torch.stack(ids, dim=1).to(joints_2d.device)
