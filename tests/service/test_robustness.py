@@ -167,7 +167,7 @@ def test_a_failing_batch_fails_its_requests_and_the_queue_serves_on(engine, serv
 def test_the_health_checks_tell_a_stuck_model_worker(engine, serving):
     stuck = FailingEngine(engine, fail_at=7.0, block_at=9.0)
     blocking = {"joints_2d": [[9.0, 0.0], *SPREAD[1:]]}
-    settings = {"ready_stall_s": 0.5, "live_stall_s": 1.5, "request_timeout_s": 20}
+    settings = {"ready_stall_s": 0.5, "live_stall_s": 3.0, "request_timeout_s": 20}
     with serving(stuck, **settings) as u:
         waiter = threading.Thread(
             target=lambda: httpx.post(f"{u}/v1/lift", json={"items": [blocking]}, timeout=30)
@@ -180,7 +180,7 @@ def test_the_health_checks_tell_a_stuck_model_worker(engine, serving):
             assert ready.status_code == 503 and ready.json()["error"]["code"] == "stalled"
             assert "ready_stall_s" in ready.json()["error"]["message"]
             assert httpx.get(f"{u}/healthz").status_code == 200
-            time.sleep(1.0)
+            time.sleep(2.5)
             alive = httpx.get(f"{u}/healthz")
             assert alive.status_code == 503 and "live_stall_s" in alive.text
         finally:
