@@ -59,9 +59,9 @@ def database_digest(db: PoseDatabase) -> str:
 
 
 # faiss compares float16 codes 8 dimensions at a time (SIMD) only where the dimension is a
-# multiple of 8, else one at a time: 1.8x slower than float32 at 28 dimensions, 1.7x faster at
-# 32 (IVF, nprobe 8, one thread). The vectors are padded with zeros to such a dimension, which
-# changes no distance.
+# multiple of 8, else one at a time (unpadded, float16 retrieval was 1.7x float32's; padded, it
+# is faster: docs/RESULTS.md, retrieval). The vectors are padded with zeros to such a
+# dimension, which changes no distance.
 SIMD_DIMS = 8
 
 
