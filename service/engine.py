@@ -18,6 +18,7 @@ import torch
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.search import check_searchable
+from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.lifter import Lifter
 from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
 
@@ -156,11 +157,19 @@ class Engine:
         return out  # type: ignore[return-value]
 
     def check_pose_input(self, item: PoseInput) -> None:
-        """The library's check of an image without a box, made before it is queued so that
-        it never fails a batch: InvalidImage for an image too elongated to search for people.
-        (Its box and intrinsics are checked as they are read: service.uploads.)"""
+        """The library's own checks of an image's inputs, made before it is queued, so that a
+        bad one is refused at once and never fails a batch: InvalidPose for intrinsics that
+        are not a camera's, InvalidImage for an image too elongated to search for people."""
+        if item.intrinsics is not None:
+            intrinsics_batch(item.intrinsics, 1)
         if item.bbox is None and self.pipeline is not None:
             check_searchable(*item.image.shape[:2], self.pipeline.config.search)
+
+    def check_lift_input(self, item: LiftInput) -> None:
+        """The library's own checks of a 2D pose, made before it is queued (InvalidPose)."""
+        joints_2d_batch(item.joints_2d)
+        visibility_batch(item.visible, 1)
+        intrinsics_batch(item.intrinsics, 1)
 
     def pose_batch(self, items: Sequence[PoseInput]) -> list[PoseOutput]:
         """2D and 3D poses of B images (needs the pipeline; a box may be None per image, the

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
 from ds3d.skeleton import NUM_JOINTS
@@ -48,13 +48,6 @@ class LiftItem(_Strict):
             json_schema_extra={"contains": {"const": True}, "minContains": MIN_VISIBLE},
         )
     )
-
-    @field_validator("visible")
-    @classmethod
-    def _enough_visible(cls, visible: list[bool] | None) -> list[bool] | None:
-        if visible is not None and sum(visible) < MIN_VISIBLE:
-            raise ValueError(f"at least {MIN_VISIBLE} joints must be visible")
-        return visible
 
 
 class LiftRequest(_Strict):

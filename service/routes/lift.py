@@ -7,6 +7,7 @@ import time
 import numpy as np
 from fastapi import APIRouter, Depends, Request
 
+from ds3d.errors import InvalidPose
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES, NUM_JOINTS
 from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
 from service.engine import LiftInput, request_timings_ms
@@ -23,8 +24,8 @@ def require_json(request: Request) -> None:
 
 
 def lift_inputs(body: LiftRequest) -> list[LiftInput]:
-    """The batcher's items of a request the schema validated as the library would
-    (ds3d.inputs: bounds, focal lengths, visible joints), so that none fails a batch."""
+    """The batcher's items of a validated request (its numbers within float32's range: the
+    schema bounds them by ds3d.inputs.MAX_COORDINATE_PX)."""
     return [
         LiftInput(
             np.asarray(item.joints_2d, dtype=np.float32),
@@ -57,7 +58,13 @@ async def lift(
     if len(body.items) > most:
         why = f"{len(body.items)} items, over {name} = {most}"
         raise ApiError(413, "too_many_items", why)
-    outputs = await rt.lift.submit_many(lift_inputs(body), settings.request_timeout_s, caller)
+    items = lift_inputs(body)
+    for i, item in enumerate(items):
+        try:
+            rt.engine.check_lift_input(item)
+        except InvalidPose as exc:
+            raise ApiError(422, "invalid_pose", f"items[{i}]: {exc}") from exc
+    outputs = await rt.lift.submit_many(items, settings.request_timeout_s, caller)
     return LiftResponse(
         items=[
             LiftResult(
