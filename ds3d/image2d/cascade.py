@@ -15,6 +15,7 @@ import time
 import numpy as np
 import torch
 
+from ds3d.image2d.buckets import bucket
 from ds3d.image2d.features import NUM_IMAGE_CHANNELS, box_mean, image_channels, pad_channels
 from ds3d.image2d.forest import Forest, predict_proba
 from ds3d.image2d.params import EstimatorParams
@@ -156,7 +157,7 @@ def group_unaries(
 
     Returns (rows (b,) long, channels (b, 12, H, W) float32, unaries (b, 14, gh, gw) float32
     log-probabilities on the grid of grid_positions(H, W, p.stride), log(LOG_EPS) outside each
-    image), H x W the group's largest height and width; adds the seconds of the features and of
+    image), H x W as group_probs pads them; adds the seconds of the features and of
     the traversal to timings."""
     group = [images[i] for i in rows]
     sizes = [image.shape[:2] for image in group]
@@ -178,12 +179,14 @@ def group_probs(
     p: EstimatorParams,
     timings: dict[str, float],
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Images (H_i, W_i, 3) uint8 zero-padded into one batch -> their channels (b, 12, H, W)
-    and the last layer's probabilities (b, 15, gh, gw) (mixtures: the PSM's, for
+    """Images (H_i, W_i, 3) uint8 zero-padded into one batch -> their channels (b, 12, H, W),
+    H x W the buckets of their largest height and width (ds3d.image2d.buckets), and the last
+    layer's probabilities (b, 15, gh, gw) (mixtures: the PSM's, for
     layer_context); adds the seconds of the features and of the traversal to timings."""
     t0 = time.perf_counter()
     sizes = [image.shape[:2] for image in group]
-    channels = batch_channels(group, max(h for h, _ in sizes), max(w for _, w in sizes))
+    height, width = (bucket(max(side)) for side in zip(*sizes, strict=True))
+    channels = batch_channels(group, height, width)
     t1 = time.perf_counter()
     probs = cascade_probs(layers, channels, p, sizes, mixtures)[-1]
     timings["features"] += t1 - t0

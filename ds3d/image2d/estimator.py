@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from ds3d.errors import DataFormatError
+from ds3d.image2d.buckets import bucket
 from ds3d.image2d.cascade import group_unaries, traversal_groups
 from ds3d.image2d.crops import Crop, resize_image, working_crops
 from ds3d.image2d.facing import FacingNet
@@ -246,7 +247,7 @@ class PoseEstimator2D:
             logits_to_grid(lg, *r.shape[:2], STRIDE) for lg, r in zip(logits, resized, strict=True)
         ]
         t2 = time.perf_counter()
-        gh, gw = max(g.shape[2] for g in grids), max(g.shape[3] for g in grids)
+        gh, gw = (bucket(max(g.shape[k] for g in grids)) for k in (2, 3))
         unaries = torch.cat([pad_maps(unaries_from_logits(g), gh, gw) for g in grids])
         pose = infer(unaries * p.unary_weight, self.mixtures, stride=float(STRIDE)).joints_2d
         extent = (pose.amax(1) - pose.amin(1)).amax(-1)  # (B,) px at the base scale

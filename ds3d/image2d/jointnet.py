@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from ds3d.image2d.buckets import bucket
 from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import FLIP, NUM_JOINTS
 
@@ -143,18 +144,24 @@ def fold_batch_norms(net: nn.Module) -> nn.Module:
 def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
     extend past their images (its effect: docs/RESULTS.md): lab (B, 3, H, W) Lab / 100 ->
-    (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. Computed in
-    the network's dtype and on its device: bfloat16 as load_jointnet leaves it on a CPU that
-    computes it (CPU_BFLOAT16), or a float32 network under bfloat16 autocast there, as trained;
-    returned on the CPU."""
-    padded = F.pad(lab, (MARGIN, MARGIN, MARGIN, MARGIN))
+    (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. The network
+    runs on more zeros below and right of that border, up to the bucket of each side
+    (ds3d.image2d.buckets). Computed in the network's dtype and on its device: bfloat16 as
+    load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or a float32 network under
+    bfloat16 autocast there, as trained; returned on the CPU."""
+    height, width = lab.shape[-2:]
+    padded_h, padded_w = height + 2 * MARGIN, width + 2 * MARGIN
+    padded = F.pad(
+        lab, (MARGIN, bucket(padded_w) - width - MARGIN, MARGIN, bucket(padded_h) - height - MARGIN)
+    )
     weight = next(net.parameters(), lab)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
         padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)
+        logits = net(padded)[..., : -(-padded_h // STRIDE), : -(-padded_w // STRIDE)]
         # back on the CPU, where the cascade and the PSM read it
-        return net(padded).float().cpu().contiguous()
+        return logits.float().cpu().contiguous()
 
 
 def logits_to_grid(

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 
 from ds3d.boxes import person_boxes, suppress
 from ds3d.errors import InvalidImage
+from ds3d.image2d.buckets import bucket
 from ds3d.image2d.crops import resize_image
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import STRIDE, JointNet, logits_to_grid, padded_logits
@@ -135,6 +136,9 @@ def propose(
         logits = padded_logits(net, lab_channels(torch.from_numpy(resized)[None]))
         grid = logits_to_grid(logits, *resized.shape[:2], STRIDE)
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
+        # Cells past the level's are -inf: no root or joint can score there.
+        rows, cols = grid.shape[-2:]
+        grid = F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf)
         upward = RootScores(grid * unary_weight, mixtures, stride=float(STRIDE * pool))
         peaks = local_peaks(upward.root[0], params.peak_radius, params.peaks_per_level)
         found = upward.poses(peaks[None])

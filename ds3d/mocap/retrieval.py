@@ -31,16 +31,16 @@ from ds3d.skeleton import JOINT_SETS, SET_NAMES
 class IndexConfig:
     """How an index is built. kind: "flat" (exact) or "ivf" (inverted file with `nlist` lists,
     approximate; how many lists a search visits is a search-time setting, `nprobe`). storage:
-    "f32" or "f16" (scalar-quantised half floats: half the memory, the same neighbours up to
-    rounding, and faster searches at the padded dimensions, index_dim). f16 by default: the
-    indices are nearly all of a served model's memory (docs/RESULTS.md, retrieval)."""
+    "f32", "f16" (half floats) or "sq8" (8 bits per dimension over its trained range: a
+    quarter of f32's vector bytes). sq8 by default: the indices are nearly all of a served
+    model's memory, and sq8 finds neighbours as good (docs/RESULTS.md, retrieval)."""
 
     kind: str = "ivf"
     nlist: int = 1024
-    storage: str = "f16"
+    storage: str = "sq8"
 
     def factory_string(self) -> str:
-        store = {"f32": "Flat", "f16": "SQfp16"}[self.storage]
+        store = {"f32": "Flat", "f16": "SQfp16", "sq8": "SQ8"}[self.storage]
         if self.kind == "flat":
             return store
         if self.kind == "ivf":
@@ -58,7 +58,7 @@ def database_digest(db: PoseDatabase) -> str:
     return digest.hexdigest()[:16]
 
 
-# faiss compares float16 codes 8 dimensions at a time (SIMD) only where the dimension is a
+# faiss compares scalar-quantised codes 8 dimensions at a time (SIMD) only where the dimension is a
 # multiple of 8, else one at a time (unpadded, float16 retrieval was 1.7x float32's; padded, it
 # is faster: docs/RESULTS.md, retrieval). The vectors are padded with zeros to such a
 # dimension, which changes no distance.
