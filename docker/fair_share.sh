@@ -26,7 +26,7 @@ print('%-15s ok/s=%5.2f p50=%6s p99=%6s %s' % (sys.argv[2], d['ok_rps'], *[round
 
 load() {  # NAME KEY LOAD-ARGS...: one load test
     local name=$1 key=$2; shift 2
-    $PY -m service.loadtest "http://127.0.0.1:$PORT" --endpoint pose --images "$IMAGES" \
+    $PY -m tools.loadtest "http://127.0.0.1:$PORT" --endpoint pose --images "$IMAGES" \
         --duration "$DURATION" --deadline 10 --api-key "$key" --out "$OUT" --name "$name" "$@" >/dev/null
 }
 

@@ -36,7 +36,7 @@ for B in ${BATCH_SIZES:-1 16}; do
         sleep 1
     done
     for C in ${CONCURRENCIES:-1 4 16 64}; do
-        $PY -m service.loadtest "http://127.0.0.1:$PORT" --endpoint "$ENDPOINT" "${INPUT_ARGS[@]}" \
+        $PY -m tools.loadtest "http://127.0.0.1:$PORT" --endpoint "$ENDPOINT" "${INPUT_ARGS[@]}" \
             --mode closed --concurrency "$C" --duration "$DURATION" --out "$OUT" \
             --name "${ENDPOINT}_closed_c${C}_b${B}" --deadline 10 \
             | $PY -c "import json,sys; d=json.load(sys.stdin); l=d['latency_ms_ok'] or {}; \

@@ -3,7 +3,7 @@
 __version__ = "0.1.0"
 
 # Loaded on first use, so that `import ds3d` (the CLI, the client SDK) stays cheap.
-_LAZY = {"Pipeline": "ds3d.pipeline", "Lifter": "ds3d.lifter", "predict": "ds3d.predictions"}
+_LAZY = {"Pipeline": "ds3d.pipeline", "Lifter": "ds3d.lifter", "predict": "ds3d.io.predictions"}
 __all__ = ["Lifter", "Pipeline", "__version__", "predict"]
 
 

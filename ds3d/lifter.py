@@ -31,9 +31,9 @@ from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
 from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
-from ds3d.paths import MODELS_DIR, require_models
 from ds3d.skeleton import SET_NAMES, hip_midpoint, joint_set_mask
-from ds3d.timing import stage_timer
+from ds3d.util.paths import MODELS_DIR, require_models
+from ds3d.util.timing import stage_timer
 
 
 @dataclass(frozen=True)

@@ -44,10 +44,10 @@ from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
 from ds3d.image2d.search import Proposals, SearchParams, person_probability
 from ds3d.lifter import Lifter, LifterConfig, Query
-from ds3d.paths import MODELS_DIR
 from ds3d.refine import RefineParams, refine
 from ds3d.skeleton import NUM_JOINTS
-from ds3d.timing import stage_timer
+from ds3d.util.paths import MODELS_DIR
+from ds3d.util.timing import stage_timer
 
 STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
 PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or every one
@@ -297,8 +297,8 @@ class Pipeline:
 
     def predict(self, sources, **options):
         """Predictions for paths, folders, videos, URLs, arrays or an iterator of them, streamed
-        in batches: ds3d.predictions.predict with this pipeline (options as there)."""
-        from ds3d.predictions import predict  # it builds on this module
+        in batches: ds3d.io.predictions.predict with this pipeline (options as there)."""
+        from ds3d.io.predictions import predict  # it builds on this module
 
         return predict(sources, self, **options)
 

@@ -15,7 +15,7 @@ from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
 from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.skeleton import NUM_JOINTS
-from ds3d.threads import map_on_threads, split_rows
+from ds3d.util.threads import map_on_threads, split_rows
 
 
 @dataclass(frozen=True)

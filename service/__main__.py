@@ -15,8 +15,8 @@ import sys
 from pydantic import ValidationError
 from pydantic_settings import CliSettingsSource
 
+from service.access.keys import InvalidKeys
 from service.allocator import run_under_jemalloc
-from service.auth import InvalidKeys
 from service.settings import Settings
 
 ONEDNN_CACHE_ENTRIES = 4
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
-        access_log=False,  # service.access logs each request, without its query or any key
+        access_log=False,  # service.access.rules logs each request, without its query or any key
         limit_concurrency=settings.max_connections,
         timeout_keep_alive=settings.keep_alive_s,
         # a backstop: the app refuses a head over max_header_bytes with a 431 that names it

@@ -18,7 +18,7 @@ import ctypes.util
 import os
 import sys
 
-from ds3d.memory import loaded_allocator
+from ds3d.util.memory import loaded_allocator
 
 # Set in the re-executed process, so that a jemalloc that fails to preload is not retried forever.
 _REEXEC_MARK = "DS3D_ALLOCATOR_REEXEC"

@@ -17,14 +17,14 @@ from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import Response
 
-from service.access import API_KEY_SCHEMES, access_rules, guard
-from service.access import describe as describe_access
+from service.access.rules import API_KEY_SCHEMES, access_rules, guard
+from service.access.rules import describe as describe_access
 from service.allocator import describe as describe_allocator
-from service.batching import MicroBatcher
 from service.deps import Runtime
 from service.engine import Engine
 from service.errors import ApiError, error_response, install_handlers, to_api_error
 from service.metrics import Metrics
+from service.microbatch import MicroBatcher
 from service.routes import API_ROUTERS, ROUTERS
 from service.settings import Settings
 
@@ -60,7 +60,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
             expose_headers=["X-Request-ID", "Retry-After"],
             max_age=600,
         )
-    # The keys are checked by service.access.guard; the schemes declare them in the OpenAPI,
+    # The keys are checked by service.access.rules.guard; the schemes declare them in the OpenAPI,
     # so that /docs offers to send one.
     schemes = API_KEY_SCHEMES if app.state.access.keys is not None else []
     for router in ROUTERS:

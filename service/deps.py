@@ -20,7 +20,7 @@ R = TypeVar("R", covariant=True)
 
 
 class ModelQueue(Protocol[T, R]):
-    """A model queue as the routes and the health checks use it: service.batching.MicroBatcher
+    """A model queue as the routes and the health checks use it: service.microbatch.MicroBatcher
     in the plain service, service.ray_serve.ServeQueue on Ray Serve."""
 
     @property
@@ -82,7 +82,7 @@ async def get_runtime_handle(request: Request) -> RuntimeHandle:
 
 
 async def get_caller(request: Request) -> str:
-    """Who calls: `key:ID` or `ip:ADDRESS`, as service.access.guard found it."""
+    """Who calls: `key:ID` or `ip:ADDRESS`, as service.access.rules.guard found it."""
     return request.state.caller
 
 

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ds3d.errors import InvalidBox, InvalidImage, InvalidPose
-from service.batching import (
+from service.microbatch import (
     CallerQueueFull,
     DeadlineExceeded,
     ItemFailed,

@@ -16,8 +16,8 @@ from prometheus_client import (
     generate_latest,
 )
 
-from ds3d.memory import loaded_allocator
-from service.batching import BatchStats
+from ds3d.util.memory import loaded_allocator
+from service.microbatch import BatchStats
 
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
 BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256)

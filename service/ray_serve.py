@@ -48,7 +48,9 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.app import create_app, model_executor
-from service.batching import (
+from service.deps import Runtime
+from service.engine import Engine
+from service.microbatch import (
     BatchStats,
     CallerQueueFull,
     DeadlineExceeded,
@@ -57,8 +59,6 @@ from service.batching import (
     QueueFull,
     ShuttingDown,
 )
-from service.deps import Runtime
-from service.engine import Engine
 from service.settings import Settings
 
 log = logging.getLogger("service.ray_serve")

@@ -12,7 +12,7 @@ from starlette.datastructures import FormData, UploadFile
 
 from ds3d.boxes import checked_box
 from ds3d.errors import ImageTooLarge
-from ds3d.image_io import decode_image
+from ds3d.io.images import decode_image
 from service.engine import PoseInput
 from service.errors import ApiError
 from service.schemas import Box, Intrinsics

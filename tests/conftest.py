@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ds3d.paths import MODELS_DIR, data_root
+from ds3d.util.paths import MODELS_DIR, data_root
 
 
 def pytest_configure(config):

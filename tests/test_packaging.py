@@ -1,5 +1,5 @@
 """Packaging: the wheel carries the bundled models and runs outside the checkout; where ds3d looks
-for its models (ds3d.paths); the client SDK needs no torch."""
+for its models (ds3d.util.paths); the client SDK needs no torch."""
 
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ import pytest
 
 import ds3d.image2d.estimator
 import ds3d.lifter
-import ds3d.paths
 import ds3d.pipeline
+import ds3d.util.paths
 from ds3d.errors import DataFormatError
-from ds3d.paths import MODEL_DIR_ENV, PACKAGE_MODELS_DIR, PROJECT_ROOT
+from ds3d.util.paths import MODEL_DIR_ENV, PACKAGE_MODELS_DIR, PROJECT_ROOT
 
 PIP = [sys.executable, "-m", "pip", "-q", "--disable-pip-version-check"]  # the project venv's
 PYPROJECT = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())
@@ -57,15 +57,15 @@ def test_every_package_of_the_source_tree_is_listed_in_pyproject():
 
 def test_models_dir_is_the_env_var_else_the_checkout(monkeypatch, tmp_path):
     monkeypatch.setenv(MODEL_DIR_ENV, str(tmp_path))
-    assert ds3d.paths.models_dir() == tmp_path
+    assert ds3d.util.paths.models_dir() == tmp_path
     monkeypatch.delenv(MODEL_DIR_ENV)
-    assert ds3d.paths.in_checkout()  # the tests run from one
-    assert ds3d.paths.models_dir() == PROJECT_ROOT / "models"
+    assert ds3d.util.paths.in_checkout()  # the tests run from one
+    assert ds3d.util.paths.models_dir() == PROJECT_ROOT / "models"
 
 
 def test_missing_models_name_the_env_var_and_the_package_data(monkeypatch, tmp_path):
     nowhere = tmp_path / "nowhere"
-    for module in (ds3d.paths, ds3d.lifter, ds3d.image2d.estimator, ds3d.pipeline):
+    for module in (ds3d.util.paths, ds3d.lifter, ds3d.image2d.estimator, ds3d.pipeline):
         monkeypatch.setattr(module, "MODELS_DIR", nowhere)
     monkeypatch.delenv(MODEL_DIR_ENV, raising=False)
     loaders = (
@@ -171,7 +171,7 @@ def test_wheel_installs_and_predicts_outside_the_checkout(data_dir, tmp_path):
     work.mkdir()
 
     probe = (
-        "import json, ds3d, ds3d.paths as p; print(json.dumps([ds3d.__file__, "
+        "import json, ds3d, ds3d.util.paths as p; print(json.dumps([ds3d.__file__, "
         "str(p.MODELS_DIR), p.in_checkout()]))"
     )
     found = subprocess.run(

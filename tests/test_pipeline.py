@@ -13,12 +13,12 @@ from ds3d.data.lsp import load_lsp
 from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
 from ds3d.image2d.result import LOG_EPS, Estimate2D
-from ds3d.image_io import read_image
+from ds3d.io.images import read_image
 from ds3d.lifter import LifterConfig
-from ds3d.paths import MODELS_DIR
 from ds3d.pipeline import Pipeline, PipelineConfig, neighbour_scores
 from ds3d.refine import cells_to_image, image_to_cells
 from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
+from ds3d.util.paths import MODELS_DIR
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.pipeline import PipelineConfig
 from ds3d.refine import refine, search_window
 from ds3d.skeleton import NUM_JOINTS
-from ds3d.threads import intra_op_threads
+from ds3d.util.threads import intra_op_threads
 
 
 def test_search_window_reads_cells_and_pads_beyond_the_grid():
@@ -50,7 +50,7 @@ def test_refinement_keeps_weak_joints_on_the_grid():
 
 
 def test_refinement_on_two_threads_equals_one_thread():
-    # refine splits the images across threads (ds3d.threads); its result must not depend on it
+    # refine splits the images across threads (ds3d.util.threads); its result must not depend on it
     gen = torch.Generator().manual_seed(1)
     b, s, n = 3, 2, 16
     logits = torch.randn(b, NUM_JOINTS, 12 * 10, generator=gen)

@@ -18,9 +18,9 @@ from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
 from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
 from ds3d.cli.pipeline import load_pipeline
-from ds3d.memory import glibc_heap_mb, loaded_allocator, malloc_trim, resident_mb
-from ds3d.progress import progress
 from ds3d.skeleton import SET_NAMES
+from ds3d.util.memory import glibc_heap_mb, loaded_allocator, malloc_trim, resident_mb
+from ds3d.util.progress import progress
 
 # The environment that changes how memory is allocated, recorded in `bench memory`'s report.
 MEMORY_ENV_PREFIXES = ("MALLOC_", "LD_PRELOAD", "ONEDNN_", "DNNL_")
@@ -70,8 +70,8 @@ def bench_images(n: int, size: tuple[int, int] | None = None) -> list[np.ndarray
     """n LSP test images (resized to size = (w, h) if given), or noise of LSP's typical size
     where the dataset is absent."""
     from ds3d.data.lsp import load_lsp
-    from ds3d.image_io import read_image
-    from ds3d.paths import data_root
+    from ds3d.io.images import read_image
+    from ds3d.util.paths import data_root
 
     if (data_root() / "lsp" / "joints.mat").is_file():
         images = [read_image(p) for p in load_lsp(split="test").image_paths[:n]]
@@ -258,7 +258,7 @@ def bench_memory(args) -> int:
     size): the resident memory every --every images and its growth from the first report (after
     warm-up) to the end. Run it under each allocator (LD_PRELOAD, MALLOC_* env vars)."""
     from ds3d.data.lsp import load_lsp
-    from ds3d.image_io import read_image
+    from ds3d.io.images import read_image
 
     pipeline = load_pipeline(args)
     paths = load_lsp(split="test").image_paths[: args.images]

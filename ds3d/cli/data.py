@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ds3d.paths import MODELS_DIR
+from ds3d.util.paths import MODELS_DIR
 
 DEDUPE_MM = 60.0  # the bundled database's (docs/RESULTS.md, "How parameters were chosen")
 

@@ -16,12 +16,12 @@ from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_setup
 from ds3d.image2d.params import EstimatorParams, InferenceParams
-from ds3d.paths import project_relative
-from ds3d.progress import logging_above_bars
 from ds3d.training.config import TrainConfig
 from ds3d.training.image2d import CHECKPOINT_DIR, train
 from ds3d.training.images import training_annotations
 from ds3d.training.jointnet import fit_jointnet
+from ds3d.util.paths import project_relative
+from ds3d.util.progress import logging_above_bars
 
 # `--small`: a few dozen images and a handful of shallow trees; trains in well under a minute
 # and exists to exercise the whole path (tests, CI), not to be accurate.

@@ -17,15 +17,15 @@ from pathlib import Path
 
 import torch
 
-from ds3d.paths import MODELS_DIR
-from ds3d.progress import set_quiet
+from ds3d.util.paths import MODELS_DIR
+from ds3d.util.progress import set_quiet
 
 COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.cli.data",
     "ds3d.cli.lift",
     "ds3d.cli.image2d",
     "ds3d.cli.pipeline",
-    "ds3d.cli.batch",
+    "ds3d.cli.ray_data",
     "ds3d.cli.bench",
 )
 DEFAULT_IMAGE2D = MODELS_DIR / "image2d"

@@ -19,7 +19,7 @@ def register(commands, evals, benches) -> None:
         "predict",
         help="2D and 3D poses of the people in images, folders, videos, a webcam or URLs",
         description="Writes OUT/predictions.jsonl (a line per image or frame) and, for each "
-        "video, OUT/NAME_3d.npz and .csv; the options add more (ds3d.writers).",
+        "video, OUT/NAME_3d.npz and .csv; the options add more (ds3d.io.writers).",
     )
     p.add_argument(
         "sources",
@@ -131,9 +131,9 @@ def corner_box(text: str) -> tuple[float, float, float, float]:
 def predict(args) -> int:
     """Streams the sources through the pipeline in batches; a bad source is reported on stderr
     and in predictions.jsonl, and the run goes on."""
+    from ds3d.io.writers import RunWriter
     from ds3d.pipeline import MIN_SCORE, Pipeline
-    from ds3d.progress import progress
-    from ds3d.writers import RunWriter
+    from ds3d.util.progress import progress
 
     torch.set_num_threads(args.threads)
     pipeline = Pipeline.load(args.model_dir, device=args.device, database=args.database)
@@ -172,9 +172,9 @@ def gallery(args) -> int:
     """Random picks, not the best ones: the gallery shows successes and failures alike."""
     from ds3d.data.lsp import load_lsp
     from ds3d.evaluation.metrics import pck
-    from ds3d.image_io import read_image
-    from ds3d.progress import progress
-    from ds3d.render import render
+    from ds3d.io.images import read_image
+    from ds3d.util.progress import progress
+    from ds3d.viz.render import render
 
     pipeline = load_pipeline(args)
     if args.photos is not None:
@@ -208,9 +208,9 @@ def gallery(args) -> int:
 
 def gallery_of_photos(pipeline, folder: Path, out: Path) -> int:
     """Every JPEG or PNG photo of `folder` without a box, every person found, one render each."""
-    from ds3d.image_io import read_image
-    from ds3d.progress import progress
-    from ds3d.render import render
+    from ds3d.io.images import read_image
+    from ds3d.util.progress import progress
+    from ds3d.viz.render import render
 
     out.mkdir(parents=True, exist_ok=True)
     photos = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
@@ -272,7 +272,7 @@ def eval_people(args) -> int:
     from ds3d.data.lsp import load_lsp
     from ds3d.evaluation.people import calibration, protocol, score
     from ds3d.pipeline import MIN_SCORE
-    from ds3d.progress import progress
+    from ds3d.util.progress import progress
 
     pipeline = load_pipeline(args)
     annotations = load_lsp(split=args.split)

@@ -27,8 +27,6 @@ import numpy as np
 
 from ds3d.data.bvh import BvhMotion, global_transforms, read_bvh
 from ds3d.errors import DataFormatError
-from ds3d.paths import data_root
-from ds3d.progress import progress
 from ds3d.skeleton import (
     CMU_BVH_TO_LSP,
     H36M17_TO_LSP,
@@ -48,6 +46,8 @@ from ds3d.skeleton import (
     R_WRIST,
     hip_midpoint,
 )
+from ds3d.util.paths import data_root
+from ds3d.util.progress import progress
 
 CMU_UNIT_MM = 10.0  # millimetres per file unit (see the module docstring for the evidence)
 # Rows map file axes to Human3.6M axes: new = _Y_UP_TO_Z_UP @ old, i.e. (x, y, z) -> (x, -z, y).

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from ds3d.errors import DataFormatError
-from ds3d.paths import data_root
 from ds3d.skeleton import H36M17_TO_LSP
+from ds3d.util.paths import data_root
 
 TRAIN_SUBJECTS: tuple[str, ...] = ("S1", "S5", "S6", "S7", "S8", "S9")
 TEST_SUBJECT = "S11"

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.io
 
 from ds3d.errors import DataFormatError
-from ds3d.paths import data_root
+from ds3d.util.paths import data_root
 
 LSP_TRAIN = range(0, 1000)  # im0001-im1000, 0-based indices
 LSP_TEST = range(1000, 2000)  # im1001-im2000

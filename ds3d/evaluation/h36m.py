@@ -22,8 +22,8 @@ from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_se
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
 from ds3d.lifter import PAPER_OVERRIDES
-from ds3d.progress import progress
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
+from ds3d.util.progress import progress
 
 
 @dataclass

@@ -15,11 +15,11 @@ from ds3d.data.lsp import PoseAnnotations
 from ds3d.evaluation.metrics import pck, pixel_error
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import Estimate2D
-from ds3d.image_io import read_image
+from ds3d.io.images import read_image
 from ds3d.lifter import LifterConfig
 from ds3d.pipeline import Pipeline, PipelineConfig
-from ds3d.progress import progress
 from ds3d.skeleton import JOINT_NAMES
+from ds3d.util.progress import progress
 
 # The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
 # weighting, eq:energyS on all of them) and the full method (K = 256 -> K_w weighted,

@@ -21,7 +21,7 @@ import numpy as np
 from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import PoseAnnotations
 from ds3d.evaluation.metrics import pck
-from ds3d.image_io import read_image
+from ds3d.io.images import read_image
 
 CANVAS = (640, 480)  # width, height px
 SIZE_BINS = ((0.15, 0.25), (0.25, 0.5), (0.5, 1.0))  # person height / canvas height

@@ -51,8 +51,8 @@ from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
 from ds3d.image2d.search import Proposals, SearchParams, check_searchable, propose
-from ds3d.paths import MODELS_DIR, require_models
-from ds3d.threads import map_on_threads, split_rows
+from ds3d.util.paths import MODELS_DIR, require_models
+from ds3d.util.threads import map_on_threads, split_rows
 
 
 class PoseEstimator2D:
@@ -113,7 +113,7 @@ class PoseEstimator2D:
         With torch.get_num_threads() = N > 1, the batch is split into N parts run at once on N
         threads of one intra-op thread each: the traversal's gathers do not parallelise within
         an op, but whole images do (docs/RESULTS.md, 2D stage speed;
-        ds3d.threads). Each image's result does not depend on the batch it is in, so neither
+        ds3d.util.threads). Each image's result does not depend on the batch it is in, so neither
         does it on N. The step timings are then summed over the threads (CPU seconds); "total"
         is wall-clock.
         """

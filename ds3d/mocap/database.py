@@ -21,8 +21,8 @@ import torch
 from ds3d.errors import DataFormatError
 from ds3d.mocap.normalize import normalize_2d, normalize_3d
 from ds3d.mocap.views import rotate, view_rotations
-from ds3d.progress import progress
 from ds3d.skeleton import JOINT_SETS, NUM_JOINTS
+from ds3d.util.progress import progress
 
 
 def deduplicate(poses: np.ndarray, threshold_mm: float, chunk: int = 4096) -> np.ndarray:

@@ -23,8 +23,8 @@ import torch
 
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
-from ds3d.progress import progress
 from ds3d.skeleton import JOINT_SETS, SET_NAMES
+from ds3d.util.progress import progress
 
 
 @dataclass(frozen=True)

@@ -29,12 +29,12 @@ from ds3d.image2d.features import (
 from ds3d.image2d.forest import Forest
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
-from ds3d.progress import progress
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
 from ds3d.training.images import TrainingImage, load_training_image, observer_centric
 from ds3d.training.trees import fit_tree, stack_trees
+from ds3d.util.progress import progress
 
 log = logging.getLogger(__name__)
 

@@ -27,13 +27,13 @@ from torch import Tensor
 from ds3d.data.lsp import PoseAnnotations
 from ds3d.image2d.model_files import record_metrics, save_model
 from ds3d.image2d.params import EstimatorParams
-from ds3d.progress import set_quiet
 from ds3d.training.config import TrainConfig
 from ds3d.training.facing import fit_facing
 from ds3d.training.forests import grow_cascade
 from ds3d.training.images import training_annotations
 from ds3d.training.jointnet import fit_jointnet
 from ds3d.training.psm import fit_psm
+from ds3d.util.progress import set_quiet
 
 log = logging.getLogger(__name__)
 

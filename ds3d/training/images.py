@@ -14,7 +14,7 @@ from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.image2d.crops import resize_image
 from ds3d.image2d.facing import observer_order
 from ds3d.image2d.params import EstimatorParams
-from ds3d.image_io import read_image
+from ds3d.io.images import read_image
 from ds3d.skeleton import FLIP, L_SHOULDER, R_SHOULDER
 from ds3d.training.config import TrainConfig
 

@@ -30,11 +30,11 @@ from ds3d.image2d.facing import crop
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import CPU_BFLOAT16, STRIDE, JointNet, JointNetShape
 from ds3d.image2d.params import EstimatorParams
-from ds3d.progress import progress
 from ds3d.skeleton import FLIP, NUM_JOINTS
 from ds3d.training.checkpoint import save_checkpoint
 from ds3d.training.config import TrainConfig
 from ds3d.training.images import load_training_image
+from ds3d.util.progress import progress
 
 log = logging.getLogger(__name__)
 

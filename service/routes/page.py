@@ -1,6 +1,6 @@
 """The web page to try the service: GET / (service/static/index.html) and GET /static/{name}
 (the page's script and style sheet). Plain files, no build step, nothing fetched from elsewhere:
-the page calls /v1/pose of the same origin. Open without an API key (service.access); the page
+the page calls /v1/pose of the same origin. Open without an API key (service.access.rules); the page
 asks for one where the deployment needs it."""
 
 from __future__ import annotations

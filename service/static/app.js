@@ -16,7 +16,7 @@ const LIMBS = PARENT.map((parent, child) => [child, parent]).filter(([, p]) => p
 const R_HIP = 2;
 const L_HIP = 3;
 
-// The colours of ds3d/overlay.py (matplotlib's tab colours): right red, left blue, neck and
+// The colours of ds3d/viz/overlay.py (matplotlib's tab colours): right red, left blue, neck and
 // head green, so that the page and the saved pictures read the same.
 const RIGHT = "rgb(214, 39, 40)";
 const LEFT = "rgb(31, 119, 180)";
@@ -607,7 +607,7 @@ function drawSkeleton2d(ctx, person, scale, size, surest) {
   const radius = Math.max(3, 0.012 * size);
   points.forEach((point, i) => {
     if (!ok(i)) return;
-    // white for the surest joint, darker the less sure (ds3d/overlay.py's scheme)
+    // white for the surest joint, darker the less sure (ds3d/viz/overlay.py's scheme)
     const sure = (person.confidence?.[i] ?? surest) / surest;
     const shade = Math.round(255 * Math.min(Math.max(sure, 0), 1));
     ctx.fillStyle = `rgb(${shade}, ${shade}, ${shade})`;

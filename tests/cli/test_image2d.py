@@ -13,8 +13,8 @@ from ds3d.cli import main as cli
 from ds3d.cli.parser import field_overrides
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.params import EstimatorParams
-from ds3d.paths import MODELS_DIR, project_relative
 from ds3d.training.config import TrainConfig
+from ds3d.util.paths import MODELS_DIR, project_relative
 
 
 @pytest.mark.usefixtures("data_dir")

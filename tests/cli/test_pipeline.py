@@ -1,4 +1,4 @@
-"""`ds3d predict` and the Python predictions (ds3d.cli.pipeline, ds3d.predictions)."""
+"""`ds3d predict` and the Python predictions (ds3d.cli.pipeline, ds3d.io.predictions)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from ds3d.cli import main as cli
 from ds3d.data.lsp import load_lsp
-from ds3d.image_io import read_image
+from ds3d.io.images import read_image
 from ds3d.skeleton import NUM_JOINTS
 
 

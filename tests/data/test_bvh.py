@@ -20,8 +20,8 @@ from ds3d.data.cmu import (
     subsample_indices,
 )
 from ds3d.errors import DataFormatError
-from ds3d.paths import data_root
 from ds3d.skeleton import HEAD_TOP, L_ANKLE, L_HIP, NECK, R_ANKLE, R_HIP, hip_midpoint
+from ds3d.util.paths import data_root
 
 CMU = data_root() / "cmu_bvh"
 H36M = data_root() / "h36m" / "poses_3d_17j.npz"

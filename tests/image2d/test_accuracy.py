@@ -13,7 +13,7 @@ import torch
 from ds3d.data.lsp import load_lsp
 from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
-from ds3d.paths import MODELS_DIR, data_root
+from ds3d.util.paths import MODELS_DIR, data_root
 
 MEASURED = {"psm": 0.8007, "unary_argmax": 0.7850}  # PCK@0.2, first 100 LSP test images
 MARGIN = 0.03

@@ -15,7 +15,7 @@ from ds3d.image2d.estimator import PoseEstimator2D, nearest_scale
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import FLIP
-from ds3d.threads import intra_op_threads
+from ds3d.util.threads import intra_op_threads
 
 
 @pytest.mark.usefixtures("data_dir")

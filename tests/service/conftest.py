@@ -14,7 +14,7 @@ import pytest
 import uvicorn
 
 from ds3d.data.lsp import load_lsp
-from ds3d.paths import MODELS_DIR
+from ds3d.util.paths import MODELS_DIR
 from service.app import create_app
 from service.engine import Engine
 from service.settings import Settings

@@ -19,10 +19,10 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import DataFormatError
-from ds3d.image_io import read_image
-from ds3d.paths import MODELS_DIR
+from ds3d.io.images import read_image
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
-from ds3d.threads import intra_op_threads
+from ds3d.util.paths import MODELS_DIR
+from ds3d.util.threads import intra_op_threads
 from service.client import AsyncPoseClient, PoseClient, ServiceError
 from service.settings import Settings
 
@@ -369,7 +369,7 @@ def test_shutdown_answers_the_queued_requests(engine, poses, serving):
 
 
 def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
-    from service import loadtest
+    from tools import loadtest
 
     poses_file = tmp_path / "poses.json"
     poses_file.write_text(json.dumps({"joints_2d": poses.tolist()}))

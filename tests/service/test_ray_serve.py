@@ -26,7 +26,7 @@ except ImportError as exc:
 from ds3d.data.lsp import load_lsp
 from ds3d.skeleton import JOINT_NAMES
 from service.app import create_app
-from service.batching import CallerQueueFull, DeadlineExceeded, ItemFailed, QueueFull
+from service.microbatch import CallerQueueFull, DeadlineExceeded, ItemFailed, QueueFull
 from service.settings import Settings
 
 pytestmark = pytest.mark.slow

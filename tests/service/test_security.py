@@ -1,4 +1,4 @@
-"""Who may call the service (service/auth.py, service/fairness.py, the middleware in
+"""Who may call the service (service/access/keys.py, service/fairness.py, the middleware in
 service/app.py): API keys on every route, keys never in URLs, per-caller limits, CORS, the
 browser headers, logs without secrets, and an audit of the installed dependencies."""
 
@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.auth import ApiKeys, InvalidKeys, key_id, presented_key, read_keys
+from service.access.keys import ApiKeys, InvalidKeys, key_id, presented_key, read_keys
 from service.client import PoseClient, ServiceError
 
 KEY_A = "a-first-test-key-0123456789"
@@ -211,11 +211,11 @@ def test_answers_carry_a_request_id_and_the_browser_headers(keyed):
 
 
 def test_the_access_log_names_the_key_by_its_id_never_the_key(keyed, caplog):
-    caplog.set_level(logging.INFO, logger="service.access")
+    caplog.set_level(logging.INFO, logger="service.access.rules")
     headers = bearer(KEY_A) | {"X-Request-ID": "log-check-1"}
     httpx.post(f"{keyed}/v1/lift?people=all", json=LIFT, headers=headers)
     httpx.post(f"{keyed}/v1/lift", json=LIFT, headers=bearer("wrong-key-0123456789abc"))
-    lines = [r.getMessage() for r in caplog.records if r.name == "service.access"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "service.access.rules"]
     mine = [line for line in lines if line.startswith("log-check-1 ")]
     assert mine and f"key:{key_id(KEY_A)}" in mine[0] and "people=all" not in mine[0]
     text = "\n".join(lines)

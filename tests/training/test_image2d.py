@@ -13,7 +13,7 @@ from ds3d.cli import main as cli
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.facing import FacingNet
 from ds3d.image2d.jointnet import JointNet
-from ds3d.threads import intra_op_threads
+from ds3d.util.threads import intra_op_threads
 
 
 @pytest.mark.usefixtures("data_dir")

@@ -1,7 +1,7 @@
 """Fast pictures of results with OpenCV, for every image of a run and every frame of a video: the
 2D skeletons drawn over the image, and the 3D skeletons on a panel beside it.
 
-Colours as ds3d.render (the person's right red, left blue, neck and head green); a joint's dot
+Colours as ds3d.viz.render (the person's right red, left blue, neck and head green); a joint's dot
 is as bright as the 2D stage is sure of it. Arrays are RGB throughout.
 """
 
@@ -20,7 +20,7 @@ PANEL_SPAN_MM = 2400.0
 
 def limb_colour(child: int) -> tuple[int, int, int]:
     """RGB of the limb ending at joint `child`: the person's right red, left blue, neck and
-    head green (ds3d.render's too)."""
+    head green (ds3d.viz.render's too)."""
     if child in (NECK, HEAD_TOP):
         return CENTRE
     return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT

@@ -19,12 +19,12 @@ from fastapi import Request, Security
 from fastapi.responses import Response
 from fastapi.security import APIKeyHeader, HTTPBearer
 
-from service.auth import ApiKeys, InvalidKeys, presented_key, read_keys
+from service.access.keys import ApiKeys, InvalidKeys, presented_key, read_keys
+from service.access.ratelimit import RequestRate, TooManyRequests
 from service.errors import ApiError, error_response
-from service.ratelimit import RequestRate, TooManyRequests
 from service.settings import Settings
 
-log = logging.getLogger("service.access")
+log = logging.getLogger("service.access.rules")
 
 # The two ways to send a key, as OpenAPI security schemes (inert: `guard` checks the key).
 API_KEY_SCHEMES = [

@@ -1,4 +1,4 @@
-"""`ds3d batch`: the pipeline over many images on a Ray Data actor pool (ds3d.batch). Ray, an
+"""`ds3d batch`: the pipeline over many images on a Ray Data actor pool (ds3d.io.ray_data). Ray, an
 optional extra, is imported only when the command runs."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def register(commands, evals, benches) -> None:
         "--max-pixels",
         type=int,
         default=None,
-        help="larger images are errors, refused before decoding (default: ds3d.image_io's)",
+        help="larger images are errors, refused before decoding (default: ds3d.io.images's)",
     )
     p.add_argument(
         "--retry-errors",
@@ -61,7 +61,7 @@ def register(commands, evals, benches) -> None:
 
 
 def batch(args) -> int:
-    from ds3d.batch import (
+    from ds3d.io.ray_data import (
         RAY_MISSING,
         BatchOptions,
         ResultWriter,
@@ -75,7 +75,7 @@ def batch(args) -> int:
         import ray  # noqa: F401  (only to say early, and clearly, that it is missing)
     except ImportError:
         raise SystemExit(RAY_MISSING) from None
-    from ds3d.image_io import DEFAULT_MAX_PIXELS
+    from ds3d.io.images import DEFAULT_MAX_PIXELS
 
     try:
         default = max(1, (os.cpu_count() or 2) // max(1, args.threads))

@@ -1,4 +1,4 @@
-"""`ds3d batch` (ds3d.cli.batch, ds3d.batch): listing, resuming, and a run on a local Ray."""
+"""`ds3d batch` (ds3d.cli.ray_data, ds3d.io.ray_data): listing, resuming, a run on a local Ray."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ds3d.batch import (
+from ds3d.cli import main as cli
+from ds3d.io.ray_data import (
     ERRORS,
     PREDICTIONS,
     BatchOptions,
@@ -20,7 +21,6 @@ from ds3d.batch import (
     list_images,
     parse_actors,
 )
-from ds3d.cli import main as cli
 from ds3d.skeleton import NUM_JOINTS
 
 JPEG = b"\xff\xd8\xff\xe0" + bytes(12)  # a JPEG's first bytes: found as an image by content
@@ -92,7 +92,7 @@ def test_parse_actors():
 
 def test_the_cli_imports_no_ray_and_batch_says_how_to_install_it(tmp_path, monkeypatch):
     code = "import sys; from ds3d.cli.parser import build_parser; build_parser(); "
-    code += "import ds3d.batch; assert 'ray' not in sys.modules"
+    code += "import ds3d.io.ray_data; assert 'ray' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
     monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed: `import ray` fails
     with pytest.raises(SystemExit, match=r"pip install -e '\.\[ray\]'"):

@@ -1,7 +1,7 @@
 """Soak test of a local ds3d service: a mix of requests for a long time, and the server's memory
 and open files over it, read from its /metrics.
 
-    python -m service.soak http://127.0.0.1:8000 --duration 1800 --poses FILE --images DIR
+    python -m tools.soak http://127.0.0.1:8000 --duration 1800 --poses FILE --images DIR
 
 --clients closed-loop clients each send, in turn by --mix weights, /v1/pose with one of the
 images, /v1/lift with --items poses, and a bad request (text as an image, a pose of three
@@ -9,7 +9,7 @@ joints, a box outside its image). Every --sample-every seconds the server's resi
 (process_resident_memory_bytes) and open file descriptors (process_open_fds). Writes
 OUT/NAME.json (the samples, counts by kind and status, latency, and the memory's drift after the
 warm-up and its trend over the last third) and OUT/NAME.png (memory, descriptors and latency over
-time). Like service.loadtest, a client of local targets only.
+time). Like tools.loadtest, a client of local targets only.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import httpx
 import numpy as np
 
 from service.client import auth_headers
-from service.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
+from tools.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
 
 KINDS = ("pose", "lift", "bad")
 
@@ -216,14 +216,14 @@ def parse_mix(text: str) -> dict[str, float]:
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m service.soak", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m tools.soak", description=__doc__.split("\n")[0])
     p.add_argument("url", help="base URL of a local service, e.g. http://127.0.0.1:8000")
     p.add_argument("--duration", type=float, default=1800.0, help="seconds (max 86400)")
     p.add_argument("--clients", type=int, default=4)
     p.add_argument("--mix", type=parse_mix, default=parse_mix("pose=2,lift=2,bad=1"))
     p.add_argument("--items", type=int, default=8, help="poses per /v1/lift request")
-    p.add_argument("--poses", type=Path, required=True, metavar="FILE", help="as service.loadtest")
-    p.add_argument("--images", required=True, metavar="DIR_OR_GLOB", help="as service.loadtest")
+    p.add_argument("--poses", type=Path, required=True, metavar="FILE", help="as tools.loadtest")
+    p.add_argument("--images", required=True, metavar="DIR_OR_GLOB", help="as tools.loadtest")
     p.add_argument("--sample-every", type=float, default=10.0, help="seconds between samples")
     p.add_argument("--warmup", type=float, default=120.0, help="seconds before the drift counts")
     p.add_argument("--timeout", type=float, default=30.0, help="client timeout per request (s)")

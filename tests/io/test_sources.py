@@ -1,4 +1,4 @@
-"""Sources of `ds3d predict` (ds3d.sources): folders by content, globs, videos made here with
+"""Sources of `ds3d predict` (ds3d.io.sources): folders by content, globs, videos made here with
 OpenCV, a URL served by a local HTTP server; what cannot be read is reported, not fatal."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ds3d.sources import frames, resolve, sniff
+from ds3d.io.sources import frames, resolve, sniff
 
 
 def _jpeg(path, size=(40, 30), value=128):

@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from service.batching import (
+from service.microbatch import (
     BatchStats,
     CallerQueueFull,
     DeadlineExceeded,

@@ -1,8 +1,8 @@
 """Load test of a local ds3d service.
 
-    python -m service.loadtest http://127.0.0.1:8000 --mode closed --concurrency 16 --duration 30
-    python -m service.loadtest http://127.0.0.1:8000 --mode open --rate 50 --duration 30
-    python -m service.loadtest URL --endpoint pose --images DIR_OR_GLOB ...
+    python -m tools.loadtest http://127.0.0.1:8000 --mode closed --concurrency 16 --duration 30
+    python -m tools.loadtest http://127.0.0.1:8000 --mode open --rate 50 --duration 30
+    python -m tools.loadtest URL --endpoint pose --images DIR_OR_GLOB ...
 
 Closed loop: N workers, each sends its next request when the previous one is answered.
 Open loop: requests start at a fixed rate whether or not earlier ones were answered (this is how
@@ -260,9 +260,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(
-        prog="python -m service.loadtest", description=__doc__.split("\n")[0]
-    )
+    p = argparse.ArgumentParser(prog="python -m tools.loadtest", description=__doc__.split("\n")[0])
     p.add_argument("url", help="base URL of a local service, e.g. http://127.0.0.1:8000")
     p.add_argument("--endpoint", choices=("lift", "pose"), default="lift")
     p.add_argument("--mode", choices=("closed", "open"), default="closed")

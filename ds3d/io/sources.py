@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ds3d.errors import InvalidImage
-from ds3d.image_io import DEFAULT_MAX_PIXELS, decode_image
+from ds3d.io.images import DEFAULT_MAX_PIXELS, decode_image
 
 # The most bytes read from a URL: a long video, far more than any photo.
 MAX_URL_BYTES = 512 * 1024 * 1024
@@ -115,7 +115,7 @@ def frames(
     sources: Iterable[str | os.PathLike], stride: int = 1, max_pixels: int = DEFAULT_MAX_PIXELS
 ) -> Iterator[Frame]:
     """Every image and every `stride`-th video or camera frame of `sources`, in order (see the
-    module's docstring); still images decoded by ds3d.image_io (EXIF orientation applied)."""
+    module's docstring); still images decoded by ds3d.io.images (EXIF orientation applied)."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     for source in resolve(sources):

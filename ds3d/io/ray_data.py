@@ -15,7 +15,7 @@ predictions.jsonl), so an interrupted run goes on where it stopped.
 
 How it runs: the driver lists the images (list_images) and leaves out those done (done_sources);
 Ray Data spreads the remaining paths over a pool of actors (Estimator, one CPU and `threads` torch
-threads each, the models loaded once in __init__), each reading, decoding (ds3d.image_io, its
+threads each, the models loaded once in __init__), each reading, decoding (ds3d.io.images, its
 size guards) and estimating a batch at a time (estimate_paths); the driver appends each batch's
 lines as it comes (ResultWriter). Files are read by the actors, not by Ray's readers, so that one
 unreadable file is one error line, never a failed job.
@@ -33,8 +33,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ds3d.errors import InvalidImage
-from ds3d.image_io import DEFAULT_MAX_PIXELS
-from ds3d.sources import resolve, sniff
+from ds3d.io.images import DEFAULT_MAX_PIXELS
+from ds3d.io.sources import resolve, sniff
 
 PREDICTIONS = "predictions.jsonl"
 ERRORS = "errors.jsonl"
@@ -77,7 +77,7 @@ def _is_list_file(path: Path) -> bool:
 def list_images(sources: Iterable[str | os.PathLike]) -> tuple[list[str], list[dict]]:
     """The still images of `sources`, as absolute paths in order without repeats, and an error
     record {"source", "error"} per source that names none. A source is a folder (every image
-    below it, found by content, as ds3d.sources.resolve), a glob, an image file, or a list file
+    below it, found by content, as ds3d.io.sources.resolve), a glob, an image file, or a list file
     (read_list_file: its paths are taken as they are, checked only when read). Videos, cameras
     and URLs are errors here: `ds3d predict` reads them."""
     paths: list[str] = []
@@ -132,10 +132,10 @@ def estimate_paths(pipeline, paths: Iterable[str], options: BatchOptions) -> dic
     "source", "record" (the JSON line of predictions.jsonl, "" on an error) and "error"
     ("" when estimated). An image that cannot be read or decoded is an error; should the batch's
     estimate fail, its images are estimated one at a time, the failing ones errors."""
-    from ds3d.image_io import decode_image
+    from ds3d.io.images import decode_image
+    from ds3d.io.predictions import Prediction
+    from ds3d.io.sources import Frame
     from ds3d.pipeline import MIN_SCORE
-    from ds3d.predictions import Prediction
-    from ds3d.sources import Frame
 
     out: dict[str, list[str]] = {"source": [], "record": [], "error": []}
 

@@ -1,5 +1,5 @@
 """One replica killed under load: two `ds3d-serve` replicas on the small model behind a real nginx
-(docker/local_replicas.sh), clients without retries (service.crashtest), one replica SIGKILLed.
+(docker/local_replicas.sh), clients without retries (tools.crashtest), one replica SIGKILLed.
 The minute-long run on the bundled model and its figures: docs/RESULTS.md."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service import crashtest
+from tools import crashtest
 
 REPO = Path(__file__).resolve().parents[2]
 NGINX = shutil.which("nginx") or next(

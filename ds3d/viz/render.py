@@ -13,12 +13,12 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ds3d import overlay
 from ds3d.skeleton import LIMBS, NUM_JOINTS
+from ds3d.viz import overlay
 
 
 def limb_colour(child: int) -> tuple[float, float, float]:
-    """ds3d.overlay's colour of the limb ending at `child`, as matplotlib takes it."""
+    """ds3d.viz.overlay's colour of the limb ending at `child`, as matplotlib takes it."""
     return tuple(c / 255 for c in overlay.limb_colour(child))
 
 

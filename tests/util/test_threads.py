@@ -1,4 +1,4 @@
-"""Whole images of a batch on parallel threads (ds3d.threads)."""
+"""Whole images of a batch on parallel threads (ds3d.util.threads)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import threading
 
 import torch
 
-from ds3d.threads import intra_op_threads, map_on_threads, split_rows
+from ds3d.util.threads import intra_op_threads, map_on_threads, split_rows
 
 
 def test_rows_split_into_one_contiguous_part_per_thread():

@@ -4,7 +4,7 @@
         print(result.source, result.people.joints_3d.shape)
         picture = result.plot()  # (H, W, 3) uint8 RGB
 
-Sources are those of ds3d.sources (files, folders, globs, videos, webcam indices, URLs) and
+Sources are those of ds3d.io.sources (files, folders, globs, videos, webcam indices, URLs) and
 (H, W, 3) uint8 RGB arrays; images are read as batches are filled, so memory stays that of one
 batch. A source that cannot be read is skipped and handed to `on_skip`.
 """
@@ -23,9 +23,9 @@ import numpy as np
 from ds3d.boxes import checked_box
 from ds3d.errors import InvalidBox, InvalidImage
 from ds3d.image2d.search import SearchParams, check_searchable
-from ds3d.overlay import plot
+from ds3d.io.sources import Frame, frames
 from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
-from ds3d.sources import Frame, frames
+from ds3d.viz.overlay import plot
 
 log = logging.getLogger("ds3d")
 
@@ -59,7 +59,7 @@ class Prediction:
 
     def plot(self, with_3d: bool = True) -> np.ndarray:
         """The image with every person's 2D skeleton and, with_3d, their 3D skeletons on a
-        panel beside it: (H, W [+ 3H/4], 3) uint8 RGB (ds3d.overlay)."""
+        panel beside it: (H, W [+ 3H/4], 3) uint8 RGB (ds3d.viz.overlay)."""
         people = self.people
         return plot(
             self.image,
@@ -70,7 +70,7 @@ class Prediction:
 
 
 def _stream(sources, stride: int) -> Iterator[Frame]:
-    """Frames of paths and URLs (ds3d.sources.frames) and of arrays, in the given order."""
+    """Frames of paths and URLs (ds3d.io.sources.frames) and of arrays, in the given order."""
     if isinstance(sources, str | os.PathLike | np.ndarray):
         sources = [sources]
     runs = itertools.groupby(enumerate(sources), key=lambda item: isinstance(item[1], np.ndarray))

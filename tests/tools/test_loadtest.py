@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from service.loadtest import image_files, image_payloads, read_poses
+from tools.loadtest import image_files, image_payloads, read_poses
 
 
 def test_images_come_from_a_folder_or_a_glob(tmp_path):

@@ -3,7 +3,7 @@ while one replica is killed with SIGKILL; what every client saw is counted, and 
 replica's return is timed.
 
     docker/local_replicas.sh out/replicas &     # two replicas (8001, 8002) behind nginx on 8080
-    python -m service.crashtest http://127.0.0.1:8080 --pid-file out/replicas/replica-8001.pid \\
+    python -m tools.crashtest http://127.0.0.1:8080 --pid-file out/replicas/replica-8001.pid \\
         --replica http://127.0.0.1:8001 --poses FILE --images DIR --duration 60 --kill-at 15
 
 --clients closed-loop clients of the SDK (service.client.AsyncPoseClient, --retries extra tries:
@@ -12,7 +12,7 @@ with --items poses. At --kill-at seconds the process named by --pid-file is kill
 replica's /readyz is polled until it answers 200 again (its supervisor restarts it: compose's
 restart policy, or docker/local_replicas.sh). Writes OUT/NAME.json: the outcomes by status,
 before / while down / after, the seconds until the replica was ready again, and the requests the
-restarted replica served (from its /metrics). Like service.loadtest, a client of local targets
+restarted replica served (from its /metrics). Like tools.loadtest, a client of local targets
 only.
 """
 
@@ -32,7 +32,7 @@ from urllib.parse import urlsplit
 import httpx
 
 from service.client import AsyncPoseClient, ServiceError, auth_headers
-from service.loadtest import LOCAL_HOSTS, image_payloads, read_poses
+from tools.loadtest import LOCAL_HOSTS, image_payloads, read_poses
 
 PHASES = ("before", "down", "after")
 
@@ -148,7 +148,7 @@ async def crash_test(args) -> dict:
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m service.crashtest", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m tools.crashtest", description=__doc__)
     p.add_argument("url", help="the load balancer, e.g. http://127.0.0.1:8080")
     p.add_argument("--pid-file", type=Path, required=True, help="holds the replica's process id")
     p.add_argument("--replica", required=True, help="the killed replica's own URL (its /readyz)")

@@ -8,7 +8,7 @@ from pathlib import Path
 from ds3d.errors import DataFormatError
 
 MODEL_DIR_ENV = "DS3D_MODEL_DIR"
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parent.parent  # ds3d/, above util/
 PROJECT_ROOT = PACKAGE_DIR.parent
 # The bundled models: models/ at the top of a source checkout; in an installed wheel, the
 # package data ds3d/models (pyproject.toml maps the package ds3d.models onto models/).

@@ -24,9 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ds3d.predictions import Prediction
+from ds3d.io.predictions import Prediction
+from ds3d.io.sources import Frame
 from ds3d.skeleton import JOINT_NAMES
-from ds3d.sources import Frame
 
 COCO_KEYPOINTS = (
     "nose", "left_eye", "right_eye", "left_ear", "right_ear",

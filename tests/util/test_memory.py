@@ -1,4 +1,4 @@
-"""ds3d.memory (resident size, the malloc in use) and `ds3d bench memory`."""
+"""ds3d.util.memory (resident size, the malloc in use) and `ds3d bench memory`."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import sys
 import pytest
 
 from ds3d.cli import main as cli
-from ds3d.memory import loaded_allocator, resident_mb
+from ds3d.util.memory import loaded_allocator, resident_mb
 from service.allocator import find_jemalloc
 
 
 def allocator_of_a_child(env: dict[str, str]) -> str:
-    code = "from ds3d.memory import loaded_allocator; print(loaded_allocator())"
+    code = "from ds3d.util.memory import loaded_allocator; print(loaded_allocator())"
     out = subprocess.run(
         [sys.executable, "-c", code], env=os.environ | env, capture_output=True, text=True
     )

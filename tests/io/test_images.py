@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from ds3d.errors import InvalidImage
-from ds3d.image_io import decode_image, read_image
+from ds3d.io.images import decode_image, read_image
 
 
 def _encode(array: np.ndarray, fmt: str) -> bytes:

@@ -1,4 +1,4 @@
-"""A short soak (service.soak) against a real `ds3d-serve` process on a small model: a mix of
+"""A short soak (tools.soak) against a real `ds3d-serve` process on a small model: a mix of
 good and bad requests for a minute, the server's memory and descriptors sampled from its
 /metrics. The 30-minute soak and its figures: docs/RESULTS.md."""
 
@@ -13,8 +13,8 @@ import time
 import httpx
 import pytest
 
-from service import soak
 from service.allocator import find_jemalloc
+from tools import soak
 
 
 @pytest.fixture
