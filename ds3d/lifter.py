@@ -10,9 +10,10 @@ With no image there are no unaries, so a neighbour's weight (eq:wt) is replaced 
 of its own 2D fit residual E_p under M_s: the neighbours that project best onto the 2D pose count
 most. ds3d.Pipeline passes image-based scores instead.
 
-Each stage is a public method that ds3d.Pipeline composes too: `query` (checked input and its
-camera frame), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours`, `choose_set`,
-`fit_pose`.
+Every stage works on (pose, joint set) problems (Problems), and each is a public method that
+ds3d.Pipeline composes too: `query` (checked input and its camera frame), `problems` (which
+sets of which poses), `neighbours` (`retrieve` + `fit_projections`), `weight_neighbours`,
+`set_energies`, `choose`, `fit_pose`.
 """
 
 from __future__ import annotations
@@ -100,11 +101,31 @@ class Query:
         return Query(joints_2d, self.visible, self.frame)
 
 
+@dataclass(frozen=True)
+class Problems:
+    """P (pose, joint set) problems of a query, the unit every stage works on: query, the B
+    poses; pose (P,) long, the pose of each problem; joint_set (P,) long, its set (an index into
+    LifterConfig.joint_sets); own, the P problems' poses (query.take(pose)); masks (P, 14)
+    float, the set's joints that are visible. On the lifter's device."""
+
+    query: Query
+    pose: torch.Tensor
+    joint_set: torch.Tensor
+    own: Query
+    masks: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> Problems:
+        """The problems `rows` (index into P)."""
+        return Problems(
+            self.query, self.pose[rows], self.joint_set[rows], self.own.take(rows), self.masks[rows]
+        )
+
+
 @dataclass
 class Neighbours:
-    """What retrieval and the projection fit found: poses (B, S, K, 14, 3) mm, camera-oriented;
-    params (B, S, 6), the projection M_s of each set; residuals (B, S, K), each neighbour's
-    eq:projerr1 energy under it."""
+    """What retrieval and the projection fit found for P problems: poses (P, K, 14, 3) mm,
+    camera-oriented; params (P, 6), the projection M_s of each; residuals (P, K), each
+    neighbour's eq:projerr1 energy under it."""
 
     poses: torch.Tensor
     params: torch.Tensor
@@ -179,48 +200,25 @@ class Lifter:
         Every stage runs on the (pose, set) problems that config.partial_sets scores, each
         stage once for all of them."""
         query = self.query(joints_2d, visible, intrinsics)
-        dev, b, timings = self.device, len(query.joints_2d), {}
-        row, set_index = self.scored_sets(query.visible).nonzero().unbind(1)  # P problems
-        on_device = row.to(dev), set_index.to(dev)
-        problems = query.take(on_device[0])
-        masks = self.set_masks[on_device[1]] * problems.visible.float()  # (P, 14)
-        with stage_timer(timings, "retrieval", dev):
-            poses = self._retrieve_problems(query.joints_2d, row, set_index)
-        with stage_timer(timings, "projection_fit", dev):
-            params, residuals = self._fit_projections(poses, problems, masks)
-        with stage_timer(timings, "selection", dev):
-            kept, weights, kept_residuals = self.weight_neighbours(poses, -residuals)
-            energy = self._set_energies(kept, weights, kept_residuals, params, problems)
-            energies = torch.full((b, len(self.set_ids)), torch.inf, device=dev)
-            energies[on_device] = energy
-            usable = self.usable_sets(query.visible)
-            best = torch.where(usable, energies, torch.inf).argmin(-1)
-            problem_of = torch.zeros(b, len(self.set_ids), dtype=torch.long, device=dev)
-            problem_of[on_device] = torch.arange(len(row), device=dev)
-            chosen = problem_of[torch.arange(b, device=dev), best]
-        with stage_timer(timings, "pose_fit", dev):
-            pose, projection = self._fit_pose(
-                kept[chosen], weights[chosen], params[chosen], query, masks[chosen]
+        problems, timings = self.problems(query), {}
+        found = self.neighbours(problems, timings=timings)
+        with stage_timer(timings, "selection", self.device):
+            kept, weights, kept_residuals = self.weight_neighbours(found.poses, -found.residuals)
+            energy = self.set_energies(kept, weights, kept_residuals, found.params, problems)
+            chosen, energies = self.choose(problems, energy)
+        with stage_timer(timings, "pose_fit", self.device):
+            pose, projection = self.fit_pose(
+                kept[chosen], weights[chosen], found.params[chosen], problems.take(chosen)
             )
         return LiftResult(
             joints_3d=pose.cpu(),
             bone_lengths=bone_lengths(pose).cpu(),
-            joint_set=[self.config.joint_sets[i] for i in best.tolist()],
+            joint_set=self.set_names(problems.joint_set[chosen]),
             energy=energy[chosen].cpu(),
             set_energies=energies.cpu(),
             projection=projection.cpu(),
             timings_ms=timings,
         )
-
-    def scored_sets(self, visible: torch.Tensor) -> torch.Tensor:
-        """(B, S) bool on the CPU: the sets `lift` scores for each pose (config.partial_sets)."""
-        usable = self.usable_sets(visible).cpu()
-        if self.config.partial_sets == "always":
-            return torch.ones_like(usable)
-        if "all" in self.config.joint_sets:  # every joint visible: `all` alone
-            only_all = torch.tensor([name == "all" for name in self.config.joint_sets])
-            usable[visible.all(-1).cpu()] = only_all
-        return usable
 
     def query(self, joints_2d, visible=None, intrinsics=None) -> Query:
         """Checked 2D input on the lifter's device, with its camera frame. Arguments as lift;
@@ -230,140 +228,92 @@ class Lifter:
         k = intrinsics_batch(intrinsics, len(x))
         return Query(x, vis, image_frame(x, vis, None if k is None else k.to(self.device)))
 
-    @torch.inference_mode()
-    def neighbours(
-        self,
-        query: Query,
-        start: torch.Tensor | None = None,
-        timings: dict[str, float] | None = None,
-    ) -> Neighbours:
-        """Retrieval and projection fit (eq:projerr1): K neighbours per configured set and the
-        projection M_s of each set fitted to them. start: optional (B, S, 6) projections to
-        start the fit from (a previous iteration's). Adds the stages' ms to `timings`."""
-        timings = {} if timings is None else timings
-        with stage_timer(timings, "retrieval", self.device):
-            poses = self.retrieve(query.joints_2d)
-        with stage_timer(timings, "projection_fit", self.device):
-            params, residuals = self.fit_projections(poses, query, start)
-        return Neighbours(poses, params, residuals)
+    def problems(self, query: Query, sets: str | torch.Tensor = "scored") -> Problems:
+        """The problems of query's B poses. sets: "scored", those `lift` scores
+        (config.partial_sets); "every", every configured set of every pose, pose-major (P =
+        B x S: `.unflatten(0, (B, S))` gives per-pose tables); or (B,) long, one set per pose."""
+        b, n_sets = len(query.joints_2d), len(self.set_ids)
+        if isinstance(sets, torch.Tensor):
+            pose, joint_set = torch.arange(b, device=sets.device), sets
+        elif sets == "every":
+            pose = torch.arange(b).repeat_interleave(n_sets)
+            joint_set = torch.arange(n_sets).repeat(b)
+        elif sets == "scored":
+            pose, joint_set = self._scored_sets(query.visible).nonzero().unbind(1)
+        else:
+            raise ValueError(f"sets must be 'scored', 'every' or a tensor, got {sets!r}")
+        pose, joint_set = pose.to(self.device), joint_set.to(self.device)
+        own = query.take(pose)
+        masks = self.set_masks[joint_set] * own.visible.float()
+        return Problems(query, pose, joint_set, own, masks)
 
-    def retrieve(self, joints_2d: torch.Tensor) -> torch.Tensor:
-        """K neighbours per configured set, camera-oriented. joints_2d: (B, 14, 2) px.
-        Returns (B, S, K, 14, 3) mm."""
-        b, n_sets = len(joints_2d), len(self.set_ids)
-        row = torch.arange(b).repeat_interleave(n_sets)
-        set_index = torch.arange(n_sets).repeat(b)
-        return self._retrieve_problems(joints_2d, row, set_index).unflatten(0, (b, n_sets))
+    def set_names(self, joint_set: torch.Tensor) -> list[str]:
+        """Indices into config.joint_sets -> their names."""
+        return [self.config.joint_sets[i] for i in joint_set.tolist()]
 
-    def choose_set(self, kept, weights, kept_residuals, params, query: Query):
-        """s^ by eq:energyS. kept: (B, S, K_w, 14, 3); weights, kept_residuals: (B, S, K_w);
-        params: (B, S, 6). Returns the energies (B, S) and the chosen set (B,) among the usable
-        ones."""
-        n_sets = kept.shape[1]
-        energies = self._set_energies(
-            kept.flatten(0, 1),
-            weights.flatten(0, 1),
-            kept_residuals.flatten(0, 1),
-            params.flatten(0, 1),
-            query.take(torch.arange(len(kept), device=kept.device).repeat_interleave(n_sets)),
-        ).view(-1, n_sets)
-        usable = self.usable_sets(query.visible)
-        return energies, torch.where(usable, energies, torch.inf).argmin(-1)
+    def _scored_sets(self, visible: torch.Tensor) -> torch.Tensor:
+        """(B, S) bool on the CPU: the sets `lift` scores for each pose (config.partial_sets)."""
+        usable = self._usable_sets(visible).cpu()
+        if self.config.partial_sets == "always":
+            return torch.ones_like(usable)
+        if "all" in self.config.joint_sets:  # every joint visible: `all` alone
+            only_all = torch.tensor([name == "all" for name in self.config.joint_sets])
+            usable[visible.all(-1).cpu()] = only_all
+        return usable
 
-    def _set_energies(self, kept, weights, kept_residuals, params, problems: Query):
-        """eq:energyS of P (pose, set) problems: kept (P, K_w, 14, 3), best weighted first
-        (without weighting: nearest first);
-        weights, kept_residuals (P, K_w); params (P, 6); problems: the P poses. Scored on the
-        first config.selection_neighbours. Returns (P,)."""
-        n = self.config.selection_neighbours
-        kept, weights, kept_residuals = kept[:, :n], weights[:, :n], kept_residuals[:, :n]
-        if self.config.select_on_all_joints:
-            kept_residuals = projection_energy(
-                project(kept, params, problems.frame),
-                problems.joints_2d,
-                problems.visible.float(),
-            )
-        return set_energy(kept, weights, kept_residuals, self.config.omega)
-
-    def usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
+    def _usable_sets(self, visible: torch.Tensor) -> torch.Tensor:
         """(B, S) bool: a set with a hidden joint only counts when every set has one."""
         masks = self.set_masks * visible[:, None].float()
         complete = (masks == self.set_masks).all(-1)
         return complete | ~complete.any(-1, keepdim=True)
 
-    def fit_pose(self, kept, weights, params, query: Query, best):
-        """eq:energyMin2 on the chosen set `best` (B,) of each pose. kept: (B, S, K_w, 14, 3);
-        weights: (B, S, K_w); params: (B, S, 6). Returns the pose (B, 14, 3) mm,
-        camera-oriented, root at the hip midpoint, with the person's proportions, and its
-        projection (B, 6)."""
-        rows = torch.arange(len(best), device=best.device)
-        masks = self.set_masks[best] * query.visible.float()
-        return self._fit_pose(
-            kept[rows, best], weights[rows, best], params[rows, best], query, masks
-        )
+    @torch.inference_mode()
+    def neighbours(
+        self,
+        problems: Problems,
+        start: torch.Tensor | None = None,
+        timings: dict[str, float] | None = None,
+    ) -> Neighbours:
+        """Retrieval and projection fit (eq:projerr1): K neighbours per problem and the
+        projection M_s fitted to them. start: optional (P, 6) projections to start the fit from
+        (a previous iteration's). Adds the stages' ms to `timings`."""
+        timings = {} if timings is None else timings
+        with stage_timer(timings, "retrieval", self.device):
+            poses = self.retrieve(problems)
+        with stage_timer(timings, "projection_fit", self.device):
+            params, residuals = self.fit_projections(poses, problems, start)
+        return Neighbours(poses, params, residuals)
 
-    def _fit_pose(self, kept, weights, params, query: Query, masks):
-        """fit_pose on each pose's own neighbours: kept (B, K_w, 14, 3), weights (B, K_w),
-        params (B, 6), masks (B, 14) the joints E_p uses."""
-        pose, projection = fit_pose(
-            kept,
-            weights,
-            params,
-            query.joints_2d,
-            masks,
-            query.frame,
-            self.config.omega,
-            self.config.pca_components,
-            self.config.pose_iterations,
-            self.config.proportions,
-        )
-        oriented = pose @ rotation_matrix(projection[:, :3]).transpose(-1, -2)
-        return oriented - hip_midpoint(oriented)[:, None], projection
-
-    def fit_projections(self, candidates, query: Query, start=None):
-        """eq:projerr1 for every (pose, set): candidates (B, S, K, 14, 3); start: optional
-        (B, S, 6). Returns params (B, S, 6) and the residuals of all K neighbours (B, S, K)."""
-        b, n_sets = candidates.shape[:2]
-        masks = self.set_masks[None] * query.visible[:, None].float()  # (B, S, 14)
-        rows = torch.arange(b, device=candidates.device).repeat_interleave(n_sets)
-        params, residuals = self._fit_projections(
-            candidates.flatten(0, 1),
-            query.take(rows),
-            masks.flatten(0, 1),
-            None if start is None else start.flatten(0, 1),
-        )
-        return params.view(b, n_sets, -1), residuals.view(b, n_sets, -1)
-
-    def _fit_projections(self, candidates, problems: Query, masks, start=None):
-        """eq:projerr1 for P (pose, set) problems, all in one solve on all 14 joints with the
-        set's own masked (masks (P, 14)), on the `projection_neighbours` nearest of the K
-        candidates (P, K, 14, 3). Returns params (P, 6) and the residuals of all K (P, K)."""
-        params = fit_projection(
-            candidates[:, : self.config.projection_neighbours],
-            problems.joints_2d,
-            masks,
-            problems.frame,
-            start,
-            self.config.projection_iterations,
-        )
-        projected = project(candidates, params, problems.frame)
-        return params, projection_energy(projected, problems.joints_2d, masks)
-
-    def _retrieve_problems(self, joints_2d, row: torch.Tensor, set_index: torch.Tensor):
-        """K neighbours of each (pose, set) problem: joints_2d (B, 14, 2) px; row, set_index
-        (P,) on the CPU. Returns (P, K, 14, 3) mm, camera-oriented."""
-        ids = torch.empty(len(row), self.config.neighbours, dtype=torch.long)
+    def retrieve(self, problems: Problems) -> torch.Tensor:
+        """K neighbours of each problem from its set's index. Returns (P, K, 14, 3) mm,
+        camera-oriented."""
+        set_index = problems.joint_set.cpu()
+        ids = torch.empty(len(set_index), self.config.neighbours, dtype=torch.long)
         for s in set_index.unique().tolist():
             take = (set_index == s).nonzero()[:, 0]
-            name = (self.config.joint_sets[s],)
             found = self.retriever.search(
-                joints_2d[row[take].to(joints_2d.device)],
+                problems.own.joints_2d[take.to(problems.own.joints_2d.device)],
                 self.config.neighbours,
                 self.config.nprobe,
-                name,
+                (self.config.joint_sets[s],),
             )
             ids[take] = found[:, 0].cpu()
         return self.database.candidates(ids.to(self.device))
+
+    def fit_projections(self, candidates, problems: Problems, start=None):
+        """eq:projerr1 for every problem, all in one solve on all 14 joints with the set's own
+        masked, on the `projection_neighbours` nearest of the K candidates (P, K, 14, 3);
+        start: optional (P, 6). Returns params (P, 6) and the residuals of all K (P, K)."""
+        params = fit_projection(
+            candidates[:, : self.config.projection_neighbours],
+            problems.own.joints_2d,
+            problems.masks,
+            problems.own.frame,
+            start,
+            self.config.projection_iterations,
+        )
+        projected = project(candidates, params, problems.own.frame)
+        return params, projection_energy(projected, problems.own.joints_2d, problems.masks)
 
     def weight_neighbours(self, candidates, scores):
         """eq:wt/eq:wtn. candidates: (..., K, 14, 3); scores: (..., K), higher is better.
@@ -373,3 +323,50 @@ class Lifter:
         index, weights = top_weighted(scores, self.config.weighted_neighbours)
         kept = torch.take_along_dim(candidates, index[..., None, None], dim=-3)
         return kept, weights, -torch.take_along_dim(scores, index, dim=-1)
+
+    def set_energies(self, kept, weights, kept_residuals, params, problems: Problems):
+        """eq:energyS of each problem: kept (P, K_w, 14, 3), best weighted first (without
+        weighting: nearest first); weights, kept_residuals (P, K_w); params (P, 6). Scored on
+        the first config.selection_neighbours. Returns (P,)."""
+        n = self.config.selection_neighbours
+        kept, weights, kept_residuals = kept[:, :n], weights[:, :n], kept_residuals[:, :n]
+        if self.config.select_on_all_joints:
+            kept_residuals = projection_energy(
+                project(kept, params, problems.own.frame),
+                problems.own.joints_2d,
+                problems.own.visible.float(),
+            )
+        return set_energy(kept, weights, kept_residuals, self.config.omega)
+
+    def choose(self, problems: Problems, cost: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """s^: per pose, its problem of least cost (P,) among the usable sets (a set with a
+        hidden joint only counts when every set has one; ties: the first set). Returns the
+        chosen problem of each of the B poses (B,) long, and the costs as a (B, S) table, inf
+        where a set was not among the problems."""
+        b, dev = len(problems.query.joints_2d), cost.device
+        table = torch.full((b, len(self.set_ids)), torch.inf, device=dev, dtype=cost.dtype)
+        table[problems.pose, problems.joint_set] = cost
+        usable = self._usable_sets(problems.query.visible)
+        best = torch.where(usable, table, torch.inf).argmin(-1)
+        problem_of = torch.zeros(b, len(self.set_ids), dtype=torch.long, device=dev)
+        problem_of[problems.pose, problems.joint_set] = torch.arange(len(cost), device=dev)
+        return problem_of[torch.arange(b, device=dev), best], table
+
+    def fit_pose(self, kept, weights, params, problems: Problems):
+        """eq:energyMin2 of one problem per pose (its chosen set): kept (B, K_w, 14, 3), weights
+        (B, K_w), params (B, 6). Returns the pose (B, 14, 3) mm, camera-oriented, root at the
+        hip midpoint, with the person's proportions, and its projection (B, 6)."""
+        pose, projection = fit_pose(
+            kept,
+            weights,
+            params,
+            problems.own.joints_2d,
+            problems.masks,
+            problems.own.frame,
+            self.config.omega,
+            self.config.pca_components,
+            self.config.pose_iterations,
+            self.config.proportions,
+        )
+        oriented = pose @ rotation_matrix(projection[:, :3]).transpose(-1, -2)
+        return oriented - hip_midpoint(oriented)[:, None], projection

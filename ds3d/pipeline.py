@@ -43,8 +43,9 @@ from ds3d.fit.energy import projection_energy
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
 from ds3d.image2d.search import Proposals, SearchParams, person_probability
-from ds3d.lifter import Lifter, LifterConfig, Query
+from ds3d.lifter import Lifter, LifterConfig, Problems, Query
 from ds3d.refine import RefineParams, refine
+from ds3d.result import PipelineResult
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.util.paths import MODELS_DIR
 from ds3d.util.timing import stage_timer
@@ -58,15 +59,16 @@ MIN_SCORE = 0.2
 
 
 @dataclass(frozen=True)
-class PipelineConfig(RefineParams):
-    """Parameters of the image-driven steps (the 3D stage's are in LifterConfig): the
-    refinement's (RefineParams), the number of iterations (the paper's 2; with the bundled 2D stage
-    the second adds nothing measurable: docs/RESULTS.md) and how the joint set is chosen:
-    "posterior" (eqt:best_segments_pose) or "energy" (eq:energyS; the refined pose is then the
-    chosen set's PSM MAP). search: how people are found in images given without a box."""
+class PipelineConfig:
+    """Parameters of the image-driven steps (the 3D stage's are in LifterConfig): the number of
+    iterations (the paper's 2; with the bundled 2D stage the second adds nothing measurable:
+    docs/RESULTS.md), how the joint set is chosen: "posterior" (eqt:best_segments_pose) or
+    "energy" (eq:energyS; the refined pose is then the chosen set's PSM MAP), the refinement's
+    parameters, and how people are found in images given without a box."""
 
     iterations: int = 1
     selection: str = "posterior"
+    refine: RefineParams = field(default_factory=RefineParams)
     search: SearchParams = field(default_factory=SearchParams)
 
     def __post_init__(self):
@@ -76,103 +78,17 @@ class PipelineConfig(RefineParams):
             raise ValueError(f"selection must be 'posterior' or 'energy', got {self.selection!r}")
 
 
-@dataclass
-class PipelineResult:
-    """Poses of N people, found in B images (one per image with people="best": N = B).
+@dataclass(frozen=True)
+class Candidate:
+    """A region of an image that goes through the 2D stage as its own crop: the image (an index
+    into the batch), a person box (x0, y0, x1, y1) px, whether the box was given (its person is
+    answered whatever its score), and whether its scale is known (a search proposal's, found at
+    its level) or left to the 2D stage's pyramid."""
 
-    image_index: (N,) int64, the image (of the B given) each person is in; people of one image
-        are together, best first.
-    box: (N, 4) float32 x0, y0, x1, y1 px, the box of the person's joints (ds3d.boxes).
-    score: (N,) float32 in [0, 1], the probability that it is a person
-        (ds3d.image2d.search.person_probability).
-    person_found: (N,) bool, the score at least min_score (with a box given: True, the caller
-        said where the person is). With people="best" an image where nobody scores min_score
-        still answers its likeliest pose, flagged False.
-    joints_2d: (N, 14, 2) float32 px of the input image, the refined 2D pose x^ (final).
-    joints_2d_initial: (N, 14, 2) float32 px, the 2D stage's pose x.
-    joints_2d_iterations: (N, T, 14, 2) float32 px, x^ after each iteration.
-    joints_3d: (N, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
-        root at the hip midpoint.
-    confidence: (N, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
-    facing_camera: (N,) float32 in [0, 1], the 2D stage's probability that the person faces the
-        camera; below 0.5 its left and right were swapped (Estimate2D.facing_camera), so a
-        value near 0.5 says the left/right labels are a guess.
-    joint_set: N names, the chosen set s^.
-    psm_energy: (N, T) float32, the negative MAP log-posterior of x^ after each iteration
-        (non-increasing in t with selection "posterior", which keeps the better pose; with
-        "energy" the last iteration's pose is kept).
-    iterations: T, the number of iterations run.
-    timings_ms: wall time of each stage for the whole batch.
-    """
-
-    joints_2d: torch.Tensor
-    joints_2d_initial: torch.Tensor
-    joints_2d_iterations: torch.Tensor
-    joints_3d: torch.Tensor
-    confidence: torch.Tensor
-    facing_camera: torch.Tensor
-    joint_set: list[str]
-    psm_energy: torch.Tensor
-    iterations: int
-    timings_ms: dict[str, float]
-    image_index: torch.Tensor
-    box: torch.Tensor
-    score: torch.Tensor
-    person_found: torch.Tensor
-
-    @classmethod
-    def empty(cls, iterations: int, timings_ms: dict[str, float]) -> PipelineResult:
-        """Nobody: every field with N = 0."""
-        n, j = 0, NUM_JOINTS
-        return cls(
-            joints_2d=torch.zeros(n, j, 2),
-            joints_2d_initial=torch.zeros(n, j, 2),
-            joints_2d_iterations=torch.zeros(n, iterations, j, 2),
-            joints_3d=torch.zeros(n, j, 3),
-            confidence=torch.zeros(n, j),
-            facing_camera=torch.zeros(n),
-            joint_set=[],
-            psm_energy=torch.zeros(n, iterations),
-            iterations=iterations,
-            timings_ms=timings_ms,
-            image_index=torch.zeros(n, dtype=torch.long),
-            box=torch.zeros(n, 4),
-            score=torch.zeros(n),
-            person_found=torch.zeros(n, dtype=torch.bool),
-        )
-
-    def item(self, i: int) -> dict:
-        """Person i's result as JSON-ready lists."""
-        return {
-            "box": self.box[i].tolist(),
-            "score": float(self.score[i]),
-            "person_found": bool(self.person_found[i]),
-            "joints_2d": self.joints_2d[i].tolist(),
-            "joints_2d_initial": self.joints_2d_initial[i].tolist(),
-            "joints_3d": self.joints_3d[i].tolist(),
-            "confidence": self.confidence[i].tolist(),
-            "facing_camera": float(self.facing_camera[i]),
-            "joint_set": self.joint_set[i],
-            "iterations": self.iterations,
-            "psm_energy": self.psm_energy[i].tolist(),
-        }
-
-    def rows(self, index: torch.Tensor) -> PipelineResult:
-        """The people `index` (K,) int64, in that order."""
-        fields = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, torch.Tensor):
-                fields[f.name] = value[index]
-            elif isinstance(value, list):
-                fields[f.name] = [value[i] for i in index.tolist()]
-            else:
-                fields[f.name] = value
-        return PipelineResult(**fields)
-
-    def people_of(self, image: int) -> PipelineResult:
-        """The people of image `image` (of those given), best first."""
-        return self.rows(torch.nonzero(self.image_index == image).view(-1))
+    image: int
+    box: np.ndarray
+    given: bool
+    scale_known: bool
 
 
 def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Tensor:
@@ -183,7 +99,9 @@ def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Ten
 
 
 class Pipeline:
-    """Load once, estimate many: `Pipeline.load().estimate(images)`."""
+    """Load once, estimate many: `Pipeline.load().estimate(images)`. Its steps, each a method:
+    candidates (the people search), estimate_2d (the 2D stage), answered (who is answered),
+    lift_estimate (the 3D stage with the refinement)."""
 
     def __init__(
         self, estimator: PoseEstimator2D, lifter: Lifter, config: PipelineConfig = PipelineConfig()
@@ -241,66 +159,38 @@ class Pipeline:
         min_score).
         """
         images = list(images)
-        people = _per_image(people, len(images), "people")
-        min_score = _per_image(min_score, len(images), "min_score")
-        for wanted, floor in zip(people, min_score, strict=True):
-            if wanted not in PEOPLE:
-                raise ValueError(f"people must be one of {PEOPLE}, got {wanted!r}")
-            if not 0.0 <= floor <= 1.0:
-                raise ValueError(f"min_score must lie in [0, 1], got {floor}")
-        if bboxes is not None and len(bboxes) != len(images):
-            raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
-        given = [None] * len(images) if bboxes is None else bboxes
-        boxes = [
-            None if box is None else checked_box(box, image.shape[1], image.shape[0])
-            for image, box in zip(images, given, strict=True)
-        ]
+        people, min_score = _people_asked(people, min_score, len(images))
+        boxes = _checked_boxes(images, bboxes)
         t_start = time.perf_counter()
-        # The crops: each given box, whose scale the 2D stage chooses, and each proposal's,
-        # whose scale the search has already found; and the whole image as one more given box:
-        # where a photo is a tight crop around its person it is the better one, and it finds
-        # people the edge of the image cuts.
-        searched = [i for i, box in enumerate(boxes) if box is None]
-        proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
-        crops = [(i, box, False) for i, box in enumerate(boxes) if box is not None]
-        for i, found in zip(searched, proposals, strict=True):
-            whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
-            crops += [(i, box, True) for box in self._proposal_boxes(found)] + [(i, whole, False)]
+        candidates = self.candidates(images, boxes)
         search_ms = 1000 * (time.perf_counter() - t_start)
-        owner_t = torch.tensor([i for i, _, _ in crops], dtype=torch.long)
-        parts = []
-        for at_scale in (False, True):
-            rows = [k for k, crop in enumerate(crops) if crop[2] == at_scale]
-            if rows:
-                part = self.estimator.estimate(
-                    [images[crops[k][0]] for k in rows],
-                    [crops[k][1] for k in rows],
-                    scales=[1.0] if at_scale else None,
-                )
-                parts.append((torch.tensor(rows), part))
-        estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(crops))
-        estimate.timings = {k: sum(part.timings.get(k, 0.0) for _, part in parts) for k in STEPS_2D}
-        # Who is answered is settled on the 2D stage's poses, so that only they are lifted.
-        score = person_probability(estimate.score.float(), self.config.search)
-        given = torch.tensor([boxes[i] is not None for i, _, _ in crops])
-        found = given | (score >= torch.tensor(min_score, dtype=score.dtype)[owner_t])
-        answered = self._answered(owner_t, estimate.joints_2d, score, found, people)
+        estimate = self.estimate_2d(images, candidates)
+        answered, found = self.answered(candidates, estimate, people, min_score)
+        image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)[answered]
         if intrinsics is not None:
             intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
-            intrinsics = intrinsics[owner_t[answered]] if intrinsics.ndim == 3 else intrinsics
+            intrinsics = intrinsics[image_index] if intrinsics.ndim == 3 else intrinsics
         result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations)
-        result.image_index = owner_t[answered]
+        result.image_index = image_index
         result.person_found = found[answered]
         result.timings_ms = {"search": round(search_ms, 3), **result.timings_ms}
         result.timings_ms["total"] = round(1000 * (time.perf_counter() - t_start), 3)
         return result
 
-    def predict(self, sources, **options):
-        """Predictions for paths, folders, videos, URLs, arrays or an iterator of them, streamed
-        in batches: ds3d.io.predictions.predict with this pipeline (options as there)."""
-        from ds3d.io.predictions import predict  # it builds on this module
-
-        return predict(sources, self, **options)
+    def candidates(self, images: list[np.ndarray], boxes: list) -> list[Candidate]:
+        """The crops of B images: each given box, whose scale the 2D stage chooses; for an
+        image without one, its people search's proposals (ds3d.image2d.search), whose scale
+        the search has found, and the whole image as one more box: where a photo is a tight
+        crop around its person it is the better one, and it finds people the image's edge
+        cuts."""
+        searched = [i for i, box in enumerate(boxes) if box is None]
+        proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
+        out = [Candidate(i, box, True, False) for i, box in enumerate(boxes) if box is not None]
+        for i, found in zip(searched, proposals, strict=True):
+            whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
+            out += [Candidate(i, box, False, True) for box in self._proposal_boxes(found)]
+            out.append(Candidate(i, whole, False, False))
+        return out
 
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
         """The boxes of an image's proposals that go on to the 2D stage (the box of the
@@ -312,30 +202,52 @@ class Pipeline:
         poses = proposals.poses[: len(keep)][keep]
         return list(np.concatenate([poses.min(1), poses.max(1)], 1))
 
-    def _answered(
+    def estimate_2d(self, images: list[np.ndarray], candidates: list[Candidate]) -> Estimate2D:
+        """The 2D stage of every candidate, in the candidates' order: those of known scale at
+        that scale alone, the others over the pyramid."""
+        parts = []
+        for scale_known in (False, True):
+            rows = [k for k, c in enumerate(candidates) if c.scale_known == scale_known]
+            if rows:
+                part = self.estimator.estimate(
+                    [images[candidates[k].image] for k in rows],
+                    [candidates[k].box for k in rows],
+                    scales=[1.0] if scale_known else None,
+                )
+                parts.append((torch.tensor(rows), part))
+        estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(candidates))
+        estimate.timings = {k: sum(part.timings.get(k, 0.0) for _, part in parts) for k in STEPS_2D}
+        return estimate
+
+    def answered(
         self,
-        image_index: torch.Tensor,
-        joints_2d: torch.Tensor,
-        score: torch.Tensor,
-        found: torch.Tensor,
+        candidates: list[Candidate],
+        estimate: Estimate2D,
         people: list[str],
-    ) -> torch.Tensor:
-        """Of every crop's 2D pose (image_index (N,), joints_2d (N, 14, 2) px, score (N,),
-        found (N,) bool), the rows answered: per image, after non-maximum suppression of
-        their boxes by score, the best one (people[image] "best") or those found ("all")."""
-        boxes = person_boxes(joints_2d.numpy())
+        min_score: list[float],
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Who is answered, settled on the 2D stage's poses so that only they are lifted: per
+        image, after non-maximum suppression of its candidates' pose boxes by score, the best
+        one (people[image] "best") or those found ("all"). A candidate is found when its box
+        was given or it scores min_score[image] (person_probability). Returns the rows of
+        `estimate` answered (N,) int64, image by image, best first, and found (C,) bool."""
+        score = person_probability(estimate.score.float(), self.config.search)
+        image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)
+        given = torch.tensor([c.given for c in candidates])
+        found = given | (score >= torch.tensor(min_score, dtype=score.dtype)[image_index])
+        boxes = person_boxes(estimate.joints_2d.numpy())
         rows = [torch.zeros(0, dtype=torch.long)]
         for image in image_index.unique().tolist():
             own = torch.nonzero(image_index == image).view(-1)
             kept = own[suppress(boxes[own], score[own].numpy(), self.config.search.overlap)]
             rows.append(kept[:1] if people[image] == "best" else kept[found[kept]])
-        return torch.cat(rows)
+        return torch.cat(rows), found
 
     @torch.inference_mode()
     def lift_estimate(
         self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None
     ) -> PipelineResult:
-        """Everything after the 2D stage, on its result for B images (arguments as estimate):
+        """Everything after the 2D stage, on its result for B people (arguments as estimate):
         lets a caller run several configurations on one 2D estimate."""
         cfg = self.config
         if iterations is not None:
@@ -350,12 +262,11 @@ class Pipeline:
         )
         # One frame for every iteration: the warm-started projections stay in its coordinates.
         first = lifter.query(est.joints_2d.to(dev), None, intrinsics)
-        query, best = first, None  # best: per image, the state with the best posterior so far
-        start = None  # the projections of the iteration before, for a warm start
+        query, best = first, None  # best: per person, the state with the best posterior so far
+        start = None  # every set's projections of the iteration before, for a warm start
         history, energies = [], []
         for _ in range(cfg.iterations):
-            state = self._iterate(est, query, start, cfg, timings)
-            start = state.params
+            state, start = self._iterate(est, query, start, cfg, timings)
             # energy selection has no common measure across iterations: the last one wins
             best = state if best is None or cfg.selection == "energy" else best.merge(state)
             query = query.moved_to(best.joints_2d)
@@ -363,7 +274,8 @@ class Pipeline:
             energies.append(-best.score)
 
         with stage_timer(timings, "pose_fit", dev):
-            pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, query, best.joint_set)
+            chosen = lifter.problems(query, best.joint_set)
+            pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, chosen)
         x = query.joints_2d
         probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
@@ -377,7 +289,7 @@ class Pipeline:
             joints_3d=pose.detach().cpu(),
             confidence=probability.clamp(0.0, 1.0).cpu(),
             facing_camera=estimate.facing_camera.cpu(),
-            joint_set=[lifter.config.joint_sets[i] for i in best.joint_set.tolist()],
+            joint_set=lifter.set_names(best.joint_set),
             psm_energy=torch.stack(energies, 1).cpu(),
             iterations=cfg.iterations,
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
@@ -394,35 +306,49 @@ class Pipeline:
         start: torch.Tensor | None,
         cfg: PipelineConfig,
         timings: dict[str, float],
-    ) -> _State:
-        """One iteration from the query's 2D pose: neighbours (projections warm-started from
-        `start`, (B, S, 6)), weighted by the image (eq:wt), the refinement of every set, and
-        the set chosen by cfg.selection. Adds the stages' ms to timings."""
+    ) -> tuple[_State, torch.Tensor]:
+        """One iteration from the query's 2D pose: the neighbours of every set (projections
+        warm-started from `start`, (B x S, 6)), weighted by the image (eq:wt), the refinement
+        of every set, and the set chosen by cfg.selection. Adds the stages' ms to timings.
+        Returns the chosen set's state and every set's projections (B x S, 6)."""
         lifter, dev = self.lifter, self.lifter.device
-        found = lifter.neighbours(query, start, timings)
-        frame = query.frame.unsqueeze(1)
+        problems = lifter.problems(query, "every")  # the refinement weighs every set
+        found = lifter.neighbours(problems, start, timings)
+        frame = problems.own.frame
+        b = len(query.joints_2d)
+
+        def per_pose(t: torch.Tensor) -> torch.Tensor:  # (B x S, ...) -> (B, S, ...)
+            return t.unflatten(0, (b, -1))
+
         with stage_timer(timings, "weighting", dev):
-            scores = neighbour_scores(est, project(found.poses, found.params, frame))
-            kept, weights, _ = lifter.weight_neighbours(found.poses, scores)
+            scores = neighbour_scores(est, per_pose(project(found.poses, found.params, frame)))
+            kept, weights, _ = lifter.weight_neighbours(found.poses, scores.flatten(0, 1))
             kept_2d = project(kept, found.params, frame)
         with stage_timer(timings, "refinement", dev):
-            ref = refine(est, self.estimator.params, kept_2d, weights, cfg)
-            if cfg.selection == "posterior":
-                usable = lifter.usable_sets(query.visible)
-                chosen = torch.where(usable, ref.score, -torch.inf).argmax(-1)
-            else:
-                own_joints = lifter.set_masks[None] * query.visible[:, None].float()
-                residuals = projection_energy(kept_2d, query.joints_2d[:, None], own_joints)
-                _, chosen = lifter.choose_set(kept, weights, residuals, found.params, query)
-        rows = torch.arange(len(chosen), device=dev)
-        return _State(
-            kept,
-            weights,
-            found.params,
-            chosen,
-            ref.joints_2d[rows, chosen],
-            ref.score[rows, chosen],
+            ref = refine(
+                est, self.estimator.params, per_pose(kept_2d), per_pose(weights), cfg.refine
+            )
+            chosen = self._choose(problems, kept, weights, kept_2d, found.params, ref.score, cfg)
+        rows = torch.arange(b, device=dev)
+        joint_set = problems.joint_set[chosen]
+        state = _State(
+            kept[chosen],
+            weights[chosen],
+            found.params[chosen],
+            joint_set,
+            ref.joints_2d[rows, joint_set],
+            ref.score[rows, joint_set],
         )
+        return state, found.params
+
+    def _choose(self, problems: Problems, kept, weights, kept_2d, params, posterior, cfg):
+        """The chosen problem of each pose (B,): the set of highest refinement posterior
+        (B, S) (eqt:best_segments_pose), or of least eq:energyS on its weighted neighbours."""
+        if cfg.selection == "posterior":
+            return self.lifter.choose(problems, -posterior.flatten())[0]
+        residuals = projection_energy(kept_2d, problems.own.joints_2d, problems.masks)
+        energy = self.lifter.set_energies(kept, weights, residuals, params, problems)
+        return self.lifter.choose(problems, energy)[0]
 
 
 def _per_image(value, n: int, name: str) -> list:
@@ -435,10 +361,33 @@ def _per_image(value, n: int, name: str) -> list:
     return values
 
 
+def _people_asked(people, min_score, n: int) -> tuple[list[str], list[float]]:
+    """Pipeline.estimate's people and min_score, one per image, checked."""
+    people, min_score = _per_image(people, n, "people"), _per_image(min_score, n, "min_score")
+    for wanted, floor in zip(people, min_score, strict=True):
+        if wanted not in PEOPLE:
+            raise ValueError(f"people must be one of {PEOPLE}, got {wanted!r}")
+        if not 0.0 <= floor <= 1.0:
+            raise ValueError(f"min_score must lie in [0, 1], got {floor}")
+    return people, min_score
+
+
+def _checked_boxes(images: list[np.ndarray], bboxes) -> list:
+    """Pipeline.estimate's bboxes, one entry per image (None: search it), each box checked
+    against its image (ds3d.boxes.checked_box)."""
+    if bboxes is not None and len(bboxes) != len(images):
+        raise ValueError(f"{len(bboxes)} bboxes for {len(images)} images")
+    given = [None] * len(images) if bboxes is None else bboxes
+    return [
+        None if box is None else checked_box(box, image.shape[1], image.shape[0])
+        for image, box in zip(images, given, strict=True)
+    ]
+
+
 @dataclass
 class _State:
-    """What the 3D fit needs from the iteration that chose an image's (x^, s^): the kept
-    neighbours (B, S, K_w, 14, 3), weights (B, S, K_w), projections (B, S, 6), the set (B,),
+    """What the 3D fit needs from the iteration that chose a person's (x^, s^): the chosen
+    set's kept neighbours (B, K_w, 14, 3), weights (B, K_w) and projection (B, 6), the set (B,),
     the refined pose (B, 14, 2) px and its MAP log-posterior (B,)."""
 
     kept: torch.Tensor
@@ -449,7 +398,7 @@ class _State:
     score: torch.Tensor
 
     def merge(self, new: _State) -> _State:
-        """Per image, the state with the higher posterior (ties keep self)."""
+        """Per person, the state with the higher posterior (ties keep self)."""
         take = new.score > self.score
 
         def pick(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,8 @@ from ds3d.errors import DataFormatError
 from ds3d.image2d.search import check_searchable
 from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.lifter import Lifter
-from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
+from ds3d.pipeline import MIN_SCORE, Pipeline
+from ds3d.result import Person
 
 
 @dataclass(frozen=True)
@@ -56,18 +57,6 @@ class LiftOutput:
     joint_set: str
     energy: float
     batch: BatchInfo
-
-
-@dataclass(frozen=True)
-class Person:
-    box: np.ndarray  # (4,) float32 x0, y0, x1, y1 pixels, the box of its joints
-    score: float  # P(a person), ds3d.image2d.search.person_probability
-    person_found: bool  # score >= min_score, or a box was given
-    joints_2d: np.ndarray  # (14, 2) float32, pixels
-    joints_3d: np.ndarray  # (14, 3) float32, mm
-    confidence: np.ndarray  # (14,) float32 in [0, 1]
-    facing_camera: float  # P(faces the camera); below 0.5 left and right were swapped
-    joint_set: str
 
 
 @dataclass(frozen=True)
@@ -189,22 +178,5 @@ class Engine:
             )
             info = self._batch_info(len(idx), res.timings_ms)
             for j, i in enumerate(idx):
-                out[i] = PoseOutput(_people(res.people_of(j)), info)
+                out[i] = PoseOutput(res.people(j), info)
         return out  # type: ignore[return-value]
-
-
-def _people(found: PipelineResult) -> list[Person]:
-    """An image's people as the pipeline answered them, best first."""
-    return [
-        Person(
-            _numpy(found.box[k]),
-            float(found.score[k]),
-            bool(found.person_found[k]),
-            _numpy(found.joints_2d[k]),
-            _numpy(found.joints_3d[k]),
-            _numpy(found.confidence[k]),
-            float(found.facing_camera[k]),
-            found.joint_set[k],
-        )
-        for k in range(len(found.score))
-    ]

@@ -10,6 +10,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
+import ds3d.result
 from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
 from ds3d.skeleton import NUM_JOINTS
 
@@ -85,6 +86,11 @@ class Person(BaseModel):
         " person's own, and below 0.5 they were swapped: near 0.5 they are a guess"
     )
     joint_set: str
+
+    @classmethod
+    def of(cls, person: ds3d.result.Person) -> Person:
+        """The library's person (ds3d.result.Person) as the API answers it."""
+        return cls.model_validate(person.to_json())
 
 
 class PoseResponse(Person):

@@ -158,11 +158,11 @@ def test_each_image_is_answered_as_its_own_people_and_min_score_ask(pipeline, im
         pipeline.estimate(images[1:2], people="all", min_score=0.0),
     ]
     for image, single in enumerate(alone):
-        mine = both.people_of(image)
+        mine = both.rows(torch.nonzero(both.image_index == image).view(-1))
         assert len(mine.score) == len(single.score) and mine.joint_set == single.joint_set
         torch.testing.assert_close(mine.score, single.score, atol=1e-4, rtol=0)
         torch.testing.assert_close(mine.box, single.box, atol=1e-2, rtol=0)
-    assert len(both.people_of(0).score) == 1
+    assert len(both.people(0)) == 1
     with pytest.raises(ValueError, match="people"):
         pipeline.estimate(images[:2], people=["best"])
     with pytest.raises(ValueError, match="min_score"):

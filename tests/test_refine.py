@@ -7,8 +7,7 @@ import torch
 
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.result import LOG_EPS, Estimate2D
-from ds3d.pipeline import PipelineConfig
-from ds3d.refine import refine, search_window
+from ds3d.refine import RefineParams, refine, search_window
 from ds3d.skeleton import NUM_JOINTS
 from ds3d.util.threads import intra_op_threads
 
@@ -43,7 +42,7 @@ def test_refinement_keeps_weak_joints_on_the_grid():
     )
     jitter = 0.3 * torch.randn(32, NUM_JOINTS, 2, generator=torch.Generator().manual_seed(0))
     neighbours = (pose + jitter)[None, None]  # (1, 1, 32, 14, 2)
-    params, config = EstimatorParams(unary_weight=4.0), PipelineConfig(unary_weight=1.0)
+    params, config = EstimatorParams(unary_weight=4.0), RefineParams(unary_weight=1.0)
     ref = refine(estimate, params, neighbours, torch.ones(1, 1, 32), config)
     joints = ref.joints_2d[0, 0]
     assert bool((joints >= 0).all() & (joints <= 9).all()), joints
@@ -72,7 +71,7 @@ def test_refinement_on_two_threads_equals_one_thread():
     runs = []
     for threads in (1, 2):
         with intra_op_threads(threads):
-            runs.append(refine(estimate, EstimatorParams(), neighbours, weights, PipelineConfig()))
+            runs.append(refine(estimate, EstimatorParams(), neighbours, weights, RefineParams()))
     assert not torch.equal(runs[0].joints_2d[0], runs[0].joints_2d[2])  # the images differ
     assert torch.equal(runs[0].joints_2d, runs[1].joints_2d)
     assert torch.equal(runs[0].score, runs[1].score)

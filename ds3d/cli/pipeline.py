@@ -81,7 +81,7 @@ def register(commands, evals, benches) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="override a PipelineConfig field in every variant (e.g. min_var=4)",
+        help="override a PipelineConfig field in every variant (e.g. refine.min_var=4)",
     )
     p.add_argument(
         "--searched",
@@ -131,6 +131,7 @@ def corner_box(text: str) -> tuple[float, float, float, float]:
 def predict(args) -> int:
     """Streams the sources through the pipeline in batches; a bad source is reported on stderr
     and in predictions.jsonl, and the run goes on."""
+    from ds3d.io.predictions import predict as stream_predictions
     from ds3d.io.writers import RunWriter
     from ds3d.pipeline import MIN_SCORE, Pipeline
     from ds3d.util.progress import progress
@@ -148,8 +149,9 @@ def predict(args) -> int:
             out.skip(frame)
             bar.write(f"skipped {frame.source}: {frame.error}", file=sys.stderr)
 
-        predictions = pipeline.predict(
+        predictions = stream_predictions(
             args.sources,
+            pipeline,
             batch_size=args.batch_size,
             stride=args.stride,
             bbox=None if args.bbox is None else corner_box(args.bbox),
@@ -288,7 +290,7 @@ def eval_people(args) -> int:
             part = canvases[first : first + args.batch]
             result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
             for i in range(len(part)):
-                own = result.people_of(i)
+                own = result.rows(torch.nonzero(result.image_index == i).view(-1))
                 candidates.append((own.joints_2d.numpy(), own.score.numpy()))
             bar.update(len(part))
     # The speed as a user meets it: a second pass at the default min_score, which lifts only

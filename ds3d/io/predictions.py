@@ -24,7 +24,8 @@ from ds3d.boxes import checked_box
 from ds3d.errors import InvalidBox, InvalidImage
 from ds3d.image2d.search import SearchParams, check_searchable
 from ds3d.io.sources import Frame, frames
-from ds3d.pipeline import MIN_SCORE, Pipeline, PipelineResult
+from ds3d.pipeline import MIN_SCORE, Pipeline
+from ds3d.result import Person
 from ds3d.viz.overlay import plot
 
 log = logging.getLogger("ds3d")
@@ -33,10 +34,10 @@ log = logging.getLogger("ds3d")
 @dataclass
 class Prediction:
     """One image's (or video frame's) answer: the frame it came from (source, index, fps,
-    image) and its people, best first (a PipelineResult of N rows: one with people="best")."""
+    image) and its people, best first (one with people="best")."""
 
     frame: Frame
-    people: PipelineResult
+    people: list[Person]
 
     @property
     def source(self) -> str:
@@ -47,26 +48,25 @@ class Prediction:
         return self.frame.image
 
     def to_dict(self) -> dict:
-        """JSON-ready: source, frame index, image size and every person (PipelineResult.item)."""
+        """JSON-ready: source, frame index, image size and every person (Person.to_json)."""
         height, width = self.image.shape[:2]
         return {
             "source": self.source,
             "frame": self.frame.index,
             "width": width,
             "height": height,
-            "people": [self.people.item(k) for k in range(len(self.people.score))],
+            "people": [person.to_json() for person in self.people],
         }
 
     def plot(self, with_3d: bool = True) -> np.ndarray:
         """The image with every person's 2D skeleton and, with_3d, their 3D skeletons on a
         panel beside it: (H, W [+ 3H/4], 3) uint8 RGB (ds3d.viz.overlay)."""
-        people = self.people
-        return plot(
-            self.image,
-            people.joints_2d.numpy(),
-            people.joints_3d.numpy() if with_3d else None,
-            people.confidence.numpy(),
-        )
+
+        def stacked(name: str) -> np.ndarray:  # (N, ...) of every person's field
+            return np.array([getattr(person, name) for person in self.people])
+
+        joints_3d = stacked("joints_3d") if with_3d else None
+        return plot(self.image, stacked("joints_2d"), joints_3d, stacked("confidence"))
 
 
 def _stream(sources, stride: int) -> Iterator[Frame]:
@@ -141,4 +141,4 @@ def predict(
             min_score=min_score,
         )
         for i, frame in enumerate(batch):
-            yield Prediction(frame, result.people_of(i))
+            yield Prediction(frame, result.people(i))

@@ -160,7 +160,7 @@ def estimate_paths(pipeline, paths: Iterable[str], options: BatchOptions) -> dic
             people=options.people,
             min_score=MIN_SCORE if options.min_score is None else options.min_score,
         )
-        records = [Prediction(f, result.people_of(i)).to_dict() for i, f in enumerate(part)]
+        records = [Prediction(f, result.people(i)).to_dict() for i, f in enumerate(part)]
         for frame, record in zip(part, records, strict=True):
             add(frame.source, record=json.dumps(record))
 

@@ -122,12 +122,9 @@ class RunWriter:
                 "height": height,
             }
         )
-        people = prediction.people
-        for k in range(len(people.score)):
-            keypoints, scores = coco_keypoints(
-                people.joints_2d[k].numpy(), people.confidence[k].numpy()
-            )
-            x0, y0, x1, y1 = (float(v) for v in people.box[k])
+        for person in prediction.people:
+            keypoints, scores = coco_keypoints(person.joints_2d, person.confidence)
+            x0, y0, x1, y1 = (float(v) for v in person.box)
             self.coco["annotations"].append(
                 {
                     "id": len(self.coco["annotations"]) + 1,
@@ -139,7 +136,7 @@ class RunWriter:
                     "bbox": [round(x0, 2), round(y0, 2), round(x1 - x0, 2), round(y1 - y0, 2)],
                     "area": round((x1 - x0) * (y1 - y0), 2),
                     "iscrowd": 0,
-                    "score": round(float(people.score[k]), 4),
+                    "score": round(person.score, 4),
                 }
             )
 
@@ -177,12 +174,12 @@ class _VideoOutputs:
         self.overlay, self.stride = overlay, stride
 
     def add(self, prediction: Prediction) -> None:
-        people = prediction.people
         self.frames.append(prediction.frame.index)
-        if len(people.score):  # the best person; NaN for a frame with nobody
-            self.joints_3d.append(people.joints_3d[0].numpy())
-            self.joints_2d.append(people.joints_2d[0].numpy())
-            self.scores.append(float(people.score[0]))
+        if prediction.people:  # the best person; NaN for a frame with nobody
+            best = prediction.people[0]
+            self.joints_3d.append(best.joints_3d)
+            self.joints_2d.append(best.joints_2d)
+            self.scores.append(best.score)
         else:
             self.joints_3d.append(np.full((len(JOINT_NAMES), 3), np.nan, np.float32))
             self.joints_2d.append(np.full((len(JOINT_NAMES), 2), np.nan, np.float32))

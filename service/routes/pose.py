@@ -10,7 +10,6 @@ from fastapi import APIRouter, Query, Request
 
 from ds3d.pipeline import MIN_SCORE
 from ds3d.skeleton import JOINT_NAMES
-from service import engine
 from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
 from service.engine import request_timings_ms
 from service.errors import ApiError
@@ -57,18 +56,6 @@ async def pose(
         "timings_ms": request_timings_ms([out], time.perf_counter() - t0),
     }
     if people == "all":
-        return PeopleResponse(people=[_person(p) for p in out.people], **common)
+        return PeopleResponse(people=[Person.of(p) for p in out.people], **common)
     (best,) = out.people
-    return PoseResponse(**_person(best).model_dump(), person_found=best.person_found, **common)
-
-
-def _person(found: engine.Person) -> Person:
-    return Person(
-        box=found.box.tolist(),
-        score=found.score,
-        joints_2d=found.joints_2d.tolist(),
-        joints_3d=found.joints_3d.tolist(),
-        confidence=found.confidence.tolist(),
-        facing_camera=found.facing_camera,
-        joint_set=found.joint_set,
-    )
+    return PoseResponse(**Person.of(best).model_dump(), person_found=best.person_found, **common)

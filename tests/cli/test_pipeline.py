@@ -71,6 +71,7 @@ def test_predict_streams_a_folder_and_a_video_and_writes_every_output(
 
 
 def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
+    from ds3d import predict
     from ds3d.pipeline import Pipeline
 
     pipeline = Pipeline.load(model_dir)
@@ -78,8 +79,8 @@ def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
     array = read_image(paths[1])
     skipped = []
     results = list(
-        pipeline.predict(
-            [str(paths[0]), "missing.png", array], batch_size=2, on_skip=skipped.append
+        predict(
+            [str(paths[0]), "missing.png", array], pipeline, batch_size=2, on_skip=skipped.append
         )
     )
     assert [r.source for r in results] == [str(paths[0]), "array:2"]

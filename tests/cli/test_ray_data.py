@@ -57,7 +57,7 @@ class _NobodyPipeline:
     image."""
 
     def estimate(self, images, **options):
-        from ds3d.pipeline import PipelineResult
+        from ds3d.result import PipelineResult
 
         if any(image.shape[1] == 3 for image in images):
             raise RuntimeError("too narrow")

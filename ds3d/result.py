@@ -1,0 +1,144 @@
+"""What ds3d.Pipeline answers: the people of a batch of images (PipelineResult, batched tensors)
+and one person (Person, plain arrays), the one definition that `ds3d predict`'s files and the
+service's answers are written from."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ds3d.skeleton import NUM_JOINTS
+
+
+@dataclass(frozen=True)
+class Person:
+    """One person in an image, as answered (the fields of PipelineResult, of one row).
+
+    box: (4,) float32 x0, y0, x1, y1 px, the box of its joints. score: P(a person) in [0, 1].
+    person_found: the score at least min_score, or a box was given. joints_2d: (14, 2) float32
+    px, the refined pose; joints_2d_initial: (14, 2), the 2D stage's. joints_3d: (14, 3) float32
+    mm, camera-oriented, root at the hip midpoint. confidence: (14,) float32 in [0, 1].
+    facing_camera: P(faces the camera); below 0.5 its left and right were swapped. joint_set:
+    the chosen set. psm_energy: (T,) float32, after each iteration.
+    """
+
+    box: np.ndarray
+    score: float
+    person_found: bool
+    joints_2d: np.ndarray
+    joints_2d_initial: np.ndarray
+    joints_3d: np.ndarray
+    confidence: np.ndarray
+    facing_camera: float
+    joint_set: str
+    psm_energy: np.ndarray
+
+    def to_json(self) -> dict:
+        """JSON-ready: every field, arrays as lists, and the number of iterations run."""
+        out = {
+            f.name: value.tolist() if isinstance(value, np.ndarray) else value
+            for f in dataclasses.fields(self)
+            for value in [getattr(self, f.name)]
+        }
+        return out | {"iterations": len(self.psm_energy)}
+
+
+@dataclass
+class PipelineResult:
+    """Poses of N people, found in B images (one per image with people="best": N = B).
+
+    image_index: (N,) int64, the image (of the B given) each person is in; people of one image
+        are together, best first.
+    box: (N, 4) float32 x0, y0, x1, y1 px, the box of the person's joints (ds3d.boxes).
+    score: (N,) float32 in [0, 1], the probability that it is a person
+        (ds3d.image2d.search.person_probability).
+    person_found: (N,) bool, the score at least min_score (with a box given: True, the caller
+        said where the person is). With people="best" an image where nobody scores min_score
+        still answers its likeliest pose, flagged False.
+    joints_2d: (N, 14, 2) float32 px of the input image, the refined 2D pose x^ (final).
+    joints_2d_initial: (N, 14, 2) float32 px, the 2D stage's pose x.
+    joints_2d_iterations: (N, T, 14, 2) float32 px, x^ after each iteration.
+    joints_3d: (N, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
+        root at the hip midpoint.
+    confidence: (N, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
+    facing_camera: (N,) float32 in [0, 1], the 2D stage's probability that the person faces the
+        camera; below 0.5 its left and right were swapped (Estimate2D.facing_camera), so a
+        value near 0.5 says the left/right labels are a guess.
+    joint_set: N names, the chosen set s^.
+    psm_energy: (N, T) float32, the negative MAP log-posterior of x^ after each iteration
+        (non-increasing in t with selection "posterior", which keeps the better pose; with
+        "energy" the last iteration's pose is kept).
+    iterations: T, the number of iterations run.
+    timings_ms: wall time of each stage for the whole batch.
+    """
+
+    joints_2d: torch.Tensor
+    joints_2d_initial: torch.Tensor
+    joints_2d_iterations: torch.Tensor
+    joints_3d: torch.Tensor
+    confidence: torch.Tensor
+    facing_camera: torch.Tensor
+    joint_set: list[str]
+    psm_energy: torch.Tensor
+    iterations: int
+    timings_ms: dict[str, float]
+    image_index: torch.Tensor
+    box: torch.Tensor
+    score: torch.Tensor
+    person_found: torch.Tensor
+
+    @classmethod
+    def empty(cls, iterations: int, timings_ms: dict[str, float]) -> PipelineResult:
+        """Nobody: every field with N = 0."""
+        n, j = 0, NUM_JOINTS
+        return cls(
+            joints_2d=torch.zeros(n, j, 2),
+            joints_2d_initial=torch.zeros(n, j, 2),
+            joints_2d_iterations=torch.zeros(n, iterations, j, 2),
+            joints_3d=torch.zeros(n, j, 3),
+            confidence=torch.zeros(n, j),
+            facing_camera=torch.zeros(n),
+            joint_set=[],
+            psm_energy=torch.zeros(n, iterations),
+            iterations=iterations,
+            timings_ms=timings_ms,
+            image_index=torch.zeros(n, dtype=torch.long),
+            box=torch.zeros(n, 4),
+            score=torch.zeros(n),
+            person_found=torch.zeros(n, dtype=torch.bool),
+        )
+
+    def rows(self, index: torch.Tensor) -> PipelineResult:
+        """The people `index` (K,) int64, in that order."""
+        fields = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, torch.Tensor):
+                fields[f.name] = value[index]
+            elif isinstance(value, list):
+                fields[f.name] = [value[i] for i in index.tolist()]
+            else:
+                fields[f.name] = value
+        return PipelineResult(**fields)
+
+    def person(self, i: int) -> Person:
+        """Person i (of the N)."""
+        return Person(
+            box=self.box[i].numpy(),
+            score=float(self.score[i]),
+            person_found=bool(self.person_found[i]),
+            joints_2d=self.joints_2d[i].numpy(),
+            joints_2d_initial=self.joints_2d_initial[i].numpy(),
+            joints_3d=self.joints_3d[i].numpy(),
+            confidence=self.confidence[i].numpy(),
+            facing_camera=float(self.facing_camera[i]),
+            joint_set=self.joint_set[i],
+            psm_energy=self.psm_energy[i].numpy(),
+        )
+
+    def people(self, image: int) -> list[Person]:
+        """The people of image `image` (of those given), best first."""
+        return [self.person(i) for i in torch.nonzero(self.image_index == image).view(-1).tolist()]
