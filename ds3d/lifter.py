@@ -40,8 +40,8 @@ from ds3d.util.timing import stage_timer
 @dataclass(frozen=True)
 class LifterConfig:
     """Algorithm parameters: the paper's K and omegas; K_w, the PCA's size and the prior on the
-    proportions chosen by leave-one-subject-out on the training subjects (docs/RESULTS.md, how
-    parameters were chosen; the paper's K_w = 64 and 18 components: PAPER_OVERRIDES)."""
+    proportions chosen by leave-one-subject-out on the training subjects (docs/tuning.md; the
+    paper's K_w = 64 and 18 components: PAPER_OVERRIDES)."""
 
     neighbours: int = 256  # K
     nprobe: int = 8  # IVF lists searched: near-exact neighbours (docs/RESULTS.md, retrieval)

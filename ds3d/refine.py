@@ -25,7 +25,7 @@ class RefineParams:
     cells of search region around the neighbours' projections (search_window). unary_weight:
     the refinement's unaries relative to the 2D stage's (InferenceParams.unary_weight), against
     the binaries. min_var and unary_weight were chosen on LSP train images held out from the 2D
-    model's training (docs/RESULTS.md, "How parameters were chosen")."""
+    model's training (docs/tuning.md)."""
 
     components: int = 5
     min_var: float = 4.0

@@ -84,6 +84,11 @@ def _bone_name(child: int, group: str) -> str:
 BONE_NAMES: tuple[str, ...] = tuple(_bone_name(child, group) for child, _, group in BONES)
 BONE_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(group for _, _, group in BONES))
 
+# The person's side of each joint: "right", "left", or "centre" for the neck and the head top.
+JOINT_SIDES: tuple[str, ...] = tuple(
+    name.split("_")[0] if name.startswith(("right_", "left_")) else "centre" for name in JOINT_NAMES
+)
+
 # Left/right mirror: FLIP[i] is the joint that i becomes when the image is flipped horizontally.
 FLIP: tuple[int, ...] = (5, 4, 3, 2, 1, 0, 11, 10, 9, 8, 7, 6, 12, 13)
 
@@ -113,6 +118,14 @@ JOINT_SETS: dict[str, tuple[int, ...]] = {
     "rt": (R_ANKLE, R_KNEE, R_HIP, R_WRIST, R_ELBOW, R_SHOULDER, NECK, HEAD_TOP),
 }
 SET_NAMES: tuple[str, ...] = tuple(JOINT_SETS)
+# Each set in words, as the web page names the set a 3D pose was fitted with.
+SET_DESCRIPTIONS: dict[str, str] = {
+    "all": "all 14 joints",
+    "up": "the upper body",
+    "lw": "the lower body",
+    "lt": "the person's left side",
+    "rt": "the person's right side",
+}
 
 
 def joint_set_mask(dtype=np.float32) -> np.ndarray:

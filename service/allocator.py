@@ -4,7 +4,7 @@ With glibc's malloc the server's resident memory grows for as long as it serves 
 sizes: the 2D stage's buffers (images, feature, score and message maps, all sized by the image)
 are freed into arenas that fragment and are not given back, while the bytes in use stay flat.
 jemalloc gives them back: over 360 LSP images it stays flat where glibc grows by 12 %, and in a
-30-minute soak of the service it holds within 1.5 % (docs/RESULTS.md, "Memory"; the other
+30-minute soak of the service it holds within 1.5 % (docs/service-results.md, "Memory"; the other
 remedies measured there, malloc_trim, MALLOC_ARENA_MAX, a smaller oneDNN cache, tcmalloc, each
 either grows or costs speed). So `ds3d-serve` runs itself under jemalloc.
 

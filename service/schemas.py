@@ -6,7 +6,7 @@ Non-finite numbers (NaN, Infinity, which Python's JSON parser accepts) are refus
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -112,6 +112,44 @@ class PeopleResponse(BaseModel):
     joint_names: list[str]
     model: str
     timings_ms: dict[str, float]
+
+
+Colour = tuple[
+    Annotated[int, Field(ge=0, le=255)],
+    Annotated[int, Field(ge=0, le=255)],
+    Annotated[int, Field(ge=0, le=255)],
+]
+
+
+class JointSet(BaseModel):
+    description: str = Field(description="the set in words")
+    joints: list[int] = Field(description="its joints, as indices into joint_names")
+
+
+class Skeleton(BaseModel):
+    """The 14-joint skeleton of every answer, from the library's definitions (ds3d.skeleton)."""
+
+    joint_names: list[str] = Field(
+        description="the joints in the order of every joints_2d, joints_3d and confidence (LSP"
+        " order; right and left are the person's own)"
+    )
+    parents: list[int] = Field(
+        description="per joint, the joint it hangs from in the kinematic tree; -1 for the root"
+        " (the neck)"
+    )
+    limbs: list[tuple[int, int]] = Field(
+        description="the edges of the tree, as [child, parent] indices into joint_names"
+    )
+    sides: list[Literal["right", "left", "centre"]] = Field(
+        description="per joint, the person's side (centre: the neck and the head top)"
+    )
+    colours: dict[str, Colour] = Field(
+        description="RGB of the limbs ending at a joint of each side, as ds3d draws them"
+    )
+    bone_names: list[str] = Field(description="the order of /v1/lift's bone_lengths")
+    joint_sets: dict[str, JointSet] = Field(
+        description="the paper's five joint sets, by the name an answer's joint_set gives"
+    )
 
 
 class ErrorDetail(BaseModel):

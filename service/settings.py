@@ -48,7 +48,8 @@ class Settings(BaseSettings):
         ge=1,
         description="Images (items, not requests) allowed to wait in the /v1/pose queue: past "
         "it a request gets 503 at once. Keep queue / throughput below request_timeout_s, or "
-        "the overflow waits for a 504 instead of getting a quick 503 (docs/RESULTS.md, service).",
+        "the overflow waits for a 504 instead of getting a quick 503 (docs/service-results.md, "
+        "overload).",
     )
     max_lift_batch_size: int = Field(
         64,
@@ -87,7 +88,7 @@ class Settings(BaseSettings):
         ge=1,
         description="torch.set_num_threads of the one model thread: the 2D stage splits each "
         "batch across that many threads, the 3D stage's ops use them within. Two pay on two "
-        "cores for one process (docs/RESULTS.md); replicas, one per core, set 1 "
+        "cores for one process (docs/tuning.md, service); replicas, one per core, set 1 "
         "(docker/docker-compose.yml).",
     )
     max_image_bytes: int = Field(

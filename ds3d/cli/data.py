@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ds3d.util.paths import MODELS_DIR
 
-DEDUPE_MM = 60.0  # the bundled database's (docs/RESULTS.md, "How parameters were chosen")
+DEDUPE_MM = 60.0  # the bundled database's (docs/tuning.md)
 
 
 def register(commands, evals, benches) -> None:

@@ -63,7 +63,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument(
         "--observer-labels",
         action="store_true",
-        help="observer-centric cascade + facing model (measured no better; see docs/RESULTS.md)",
+        help="observer-centric cascade + facing model (measured no better; see docs/tuning.md)",
     )
     add_set_option(p, "an EstimatorParams field to train with (e.g. context_pose_sigma=none)")
     p.set_defaults(func=cmd_train)

@@ -108,7 +108,7 @@ class EnergyWeights:
     """omega_p, omega_r, omega_a of eq:energyMin (the paper's values), and omega_g, the weight
     of the prior on the person's bone-group scales: omega_g * sum_g (log scale_g / sd_g)^2,
     sd_g from ds3d.fit.bones.GROUP_LOG_SD normalised to an RMS of one (omega_g chosen by
-    leave-one-subject-out on the training subjects: docs/RESULTS.md)."""
+    leave-one-subject-out on the training subjects: docs/tuning.md)."""
 
     projection: float = 0.55
     retrieval: float = 0.35
@@ -160,7 +160,7 @@ def fit_pose(
 
 # The RMS 2D misfit, as a fraction of the 2D pose's spread, beyond which the prior on a
 # person's proportions strengthens (as its fourth power): after the first steps the median is
-# 0.02 for clean 2D and for rescaled bodies, 0.08 with 10 px of noise (S9, docs/RESULTS.md).
+# 0.02 for clean 2D and for rescaled bodies, 0.08 with 10 px of noise (S9, docs/tuning.md).
 NOISE_REFERENCE = 0.04
 # The spread of the prior that holds the projection's (a, b, w) where the 2D is noisy: 5 % of the
 # pose's spread and of its depth (S9: noisy 72.4 -> 71.3 mm, clean and rescaled unchanged).

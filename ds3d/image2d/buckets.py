@@ -3,8 +3,8 @@ traversal group's channels, the search's maps) to one of eight sizes per octave 
 
 A service sees images of every size. Were every tensor sized by its image, each new size would
 bring new oneDNN primitives and buffers of new sizes, and glibc's malloc keeps the free memory
-around them: resident memory climbed with the stream of sizes (docs/RESULTS.md, memory). Padded
-to a bucket, the shapes met are a bounded set whose buffers are reused, at most 1/8 more
+around them: resident memory climbed with the stream of sizes (docs/service-results.md, memory).
+Padded to a bucket, the shapes met are a bounded set whose buffers are reused, at most 1/8 more
 pixels per side. What is padded is what lies outside an image anyway (zeros, or cells no joint
 may take), so the forests and the PSM compute the same as unpadded; the joint network sees more
 of the zeros it was trained to see past an image's edge.

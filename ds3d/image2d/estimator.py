@@ -235,7 +235,7 @@ class PoseEstimator2D:
         person is from the canonical extent (nearest_scale). Returns the choice (B,) index into
         scales, the base's index, and each crop's padded_logits at the base scale, for the
         full pass to reuse where the base is chosen (elsewhere the network runs again: its
-        maps at the chosen scale are worth half a point, docs/RESULTS.md)."""
+        maps at the chosen scale are worth half a point, docs/tuning.md)."""
         p = self.params
         base = min(range(len(scales)), key=lambda k: abs(math.log(scales[k])))
         t0 = time.perf_counter()

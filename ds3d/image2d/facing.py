@@ -7,7 +7,7 @@ CROP x CROP window of the Lab channels at the working scale (a person spans abou
 the window holds the head, the torso and the thighs), centred a quarter of the way from the
 neck to the hips' midpoint: a centre that does not depend on the left/right labels it has to
 judge. On the held-out images it replaced a forest on a pose-aligned descriptor of the same
-channels (docs/RESULTS.md).
+channels (docs/tuning.md, what did not help).
 
 Facing the camera is mirror-invariant (a mirrored person who faces the camera still does, with
 left and right relabelled), so training flips every crop at random and keeps its label.

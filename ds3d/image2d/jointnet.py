@@ -143,7 +143,7 @@ def fold_batch_norms(net: nn.Module) -> nn.Module:
 
 def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
-    extend past their images (its effect: docs/RESULTS.md): lab (B, 3, H, W) Lab / 100 ->
+    extend past their images (its effect: docs/tuning.md): lab (B, 3, H, W) Lab / 100 ->
     (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. The network
     runs on more zeros below and right of that border, up to the bucket of each side
     (ds3d.image2d.buckets). Computed in the network's dtype and on its device: bfloat16 as

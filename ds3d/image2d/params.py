@@ -4,8 +4,7 @@ wrongly) and what inference may change (InferenceParams: the pyramid, the weight
 unaries, the speed/accuracy trade-offs). EstimatorParams is both, as the algorithm reads them;
 `with_inference` is the one way to change a loaded model's parameters.
 
-How each value was chosen, with the measured effect of the alternatives: docs/RESULTS.md,
-"How parameters were chosen".
+How each value was chosen, with the measured effect of the alternatives: docs/tuning.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,4 @@
-"""TrainConfig: what `ds3d train-2d` trains. How the values were chosen: docs/RESULTS.md, "How
-parameters were chosen"."""
+"""TrainConfig: what `ds3d train-2d` trains. How the values were chosen: docs/tuning.md."""
 
 from __future__ import annotations
 

@@ -56,7 +56,7 @@ def train_facing(windows: Tensor, labels: Tensor, cfg: TrainConfig) -> FacingNet
     learning rate peaking at `facing_lr`, `facing_epochs` epochs of batches of FACING_BATCH;
     every draw cuts a CROP window at a random scale (x0.87-1.15) and shift (+-8 px), mirrors
     it at random (facing the camera is mirror-invariant, so the label stays) and jitters its
-    lightness and colour (the jitter and the epochs: docs/RESULTS.md). Seeded by seed * 1000 + 7
+    lightness and colour (the jitter and the epochs: docs/tuning.md). Seeded by seed * 1000 + 7
     (torch's generator)."""
     torch.manual_seed(cfg.seed * 1000 + 7)
     net = FacingNet()

@@ -10,7 +10,7 @@ cross-entropy between it and the log-softmax of the joint's map, over the joints
 is annotated (PoseAnnotations.located) and that lie in the view.
 
 bfloat16 autocast on a CPU that computes it (jointnet.CPU_BFLOAT16): twice the speed of float32
-on this machine's cores (docs/RESULTS.md). Seeded by seed * 1000 + 11 (torch's generator).
+on this machine's cores (docs/tuning.md). Seeded by seed * 1000 + 11 (torch's generator).
 """
 
 from __future__ import annotations

@@ -10,9 +10,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ds3d.skeleton import HEAD_TOP, JOINT_NAMES, LIMBS, NECK, NUM_JOINTS
+from ds3d.skeleton import JOINT_SIDES, LIMBS, NUM_JOINTS
 
 RIGHT, LEFT, CENTRE = (214, 39, 40), (31, 119, 180), (44, 160, 44)  # matplotlib's tab colours
+SIDE_COLOURS = {"right": RIGHT, "left": LEFT, "centre": CENTRE}  # by ds3d.skeleton.JOINT_SIDES
 PANEL_BACKGROUND = (250, 250, 250)
 # The 3D panel shows a fixed 2.4 m square per person, so that a video's skeleton keeps its size.
 PANEL_SPAN_MM = 2400.0
@@ -20,10 +21,8 @@ PANEL_SPAN_MM = 2400.0
 
 def limb_colour(child: int) -> tuple[int, int, int]:
     """RGB of the limb ending at joint `child`: the person's right red, left blue, neck and
-    head green (ds3d.viz.render's too)."""
-    if child in (NECK, HEAD_TOP):
-        return CENTRE
-    return RIGHT if JOINT_NAMES[child].startswith("right") else LEFT
+    head green (ds3d.viz.render's and the web page's too)."""
+    return SIDE_COLOURS[JOINT_SIDES[child]]
 
 
 def draw_limbs(canvas: np.ndarray, points: np.ndarray, thickness: int) -> None:

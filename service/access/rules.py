@@ -2,9 +2,9 @@
 the service runs without keys), whether they may (the key, the request rate), a request id,
 an access log line without secrets, and the headers that tell browsers what the answers are.
 
-Open to every caller: /healthz and /readyz (probes), the web page (/ and /static/) and the API's
-description (/docs, /openapi.json); /metrics needs a key too unless `metrics_public`. Keys are
-never accepted in the URL.
+Open to every caller: /healthz and /readyz (probes), the web page (/ and /static/), the API's
+description (/docs, /openapi.json) and the skeleton the page draws with (/v1/skeleton); /metrics
+needs a key too unless `metrics_public`. Keys are never accepted in the URL.
 """
 
 from __future__ import annotations
@@ -33,7 +33,16 @@ API_KEY_SCHEMES = [
 ]
 
 OPEN_PATHS = frozenset(
-    {"/", "/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}
+    {
+        "/",
+        "/healthz",
+        "/readyz",
+        "/docs",
+        "/docs/oauth2-redirect",
+        "/redoc",
+        "/openapi.json",
+        "/v1/skeleton",
+    }
 )
 # Query parameters that look like a credential: refused, so that no key lands in a log or history.
 KEY_PARAMETERS = frozenset({"api_key", "apikey", "key", "token", "access_token", "auth"})
@@ -113,7 +122,7 @@ def describe(access: Access, settings: Settings) -> str:
         return f"no API keys: open to every caller that can reach {settings.host}:{settings.port}"
     metrics = "open" if access.metrics_public else "with a key"
     count = f"{len(access.keys)} API key" + ("s" if len(access.keys) > 1 else "")
-    return f"{count}; /v1/* need one, /metrics {metrics}"
+    return f"{count}; /v1/* need one (/v1/skeleton aside), /metrics {metrics}"
 
 
 def request_id(request: Request) -> str:

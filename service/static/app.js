@@ -3,37 +3,39 @@
 // build step and nothing loaded from elsewhere (the page's Content-Security-Policy forbids it).
 
 // ---------------------------------------------------------------------------------------------
-// The skeleton (ds3d/skeleton.py): 14 joints in LSP order, "right" being the person's right.
+// The skeleton: the limbs drawn between the joints of every answer's joints_2d and joints_3d
+// (LSP order, "right" being the person's right), each joint's colour and the joint sets, as the
+// service gives them (GET /v1/skeleton, made from ds3d/skeleton.py and the colours of
+// ds3d/viz/overlay.py, so that the page and the saved pictures read the same).
 
-const JOINT_NAMES = [
-  "right_ankle", "right_knee", "right_hip", "left_hip", "left_knee", "left_ankle",
-  "right_wrist", "right_elbow", "right_shoulder", "left_shoulder", "left_elbow", "left_wrist",
-  "neck", "head_top",
-];
-// PARENT[i]: the joint that joint i hangs from (-1 for the neck, the root).
-const PARENT = [1, 2, 12, 12, 3, 4, 7, 8, 12, 12, 9, 10, -1, 12];
-const LIMBS = PARENT.map((parent, child) => [child, parent]).filter(([, p]) => p >= 0);
-const R_HIP = 2;
-const L_HIP = 3;
-
-// The colours of ds3d/viz/overlay.py (matplotlib's tab colours): right red, left blue, neck and
-// head green, so that the page and the saved pictures read the same.
-const RIGHT = "rgb(214, 39, 40)";
-const LEFT = "rgb(31, 119, 180)";
-const CENTRE = "rgb(44, 160, 44)";
-
-const JOINT_SETS = {
-  all: "all 14 joints",
-  up: "the upper body",
-  lw: "the lower body",
-  lt: "the person's left side",
-  rt: "the person's right side",
+const SKELETON = {
+  limbs: [], // [child, parent] joint indices
+  colours: [], // per joint: the CSS colour of the limb that ends at it
+  sets: {}, // joint set name -> {description, joints}
+  hips: [], // the right and left hips: the 3D view stands each person on their midpoint
 };
 
-function limbColour(child) {
-  if (JOINT_NAMES[child] === "neck" || JOINT_NAMES[child] === "head_top") return CENTRE;
-  return JOINT_NAMES[child].startsWith("right") ? RIGHT : LEFT;
+async function loadSkeleton() {
+  // relative: the page and the API share their origin and any path prefix
+  const response = await fetch("v1/skeleton");
+  if (!response.ok) throw new Error(`HTTP ${response.status}`);
+  const body = await response.json();
+  const css = ([r, g, b]) => `rgb(${r}, ${g}, ${b})`;
+  SKELETON.limbs = body.limbs;
+  SKELETON.colours = body.sides.map((side) => css(body.colours[side]));
+  SKELETON.sets = body.joint_sets;
+  SKELETON.hips = ["right_hip", "left_hip"].map((name) => body.joint_names.indexOf(name));
+  // the legend's swatches (style.css: var(--right), var(--left), var(--centre))
+  for (const [side, rgb] of Object.entries(body.colours)) {
+    document.documentElement.style.setProperty(`--${side}`, css(rgb));
+  }
 }
+
+// Fetched once, at once; an answer is drawn only after it. null once loaded, else why not.
+const skeletonLoaded = loadSkeleton().then(
+  () => null,
+  (err) => err.message,
+);
 
 // ---------------------------------------------------------------------------------------------
 // State.
@@ -297,6 +299,13 @@ function buildRequest() {
 
 async function estimate() {
   if (!state.file) return;
+  const noSkeleton = await skeletonLoaded;
+  if (noSkeleton) {
+    setStatus("No skeleton to draw with.");
+    showProblem(`The service's skeleton could not be read (${noSkeleton}): reload the page.`);
+    countAnswer();
+    return;
+  }
   state.request?.abort(); // only the latest question's answer is shown
   const controller = new AbortController();
   state.request = controller;
@@ -459,7 +468,8 @@ function percent(p) {
 
 // The joint set the 3D fit trusted most (the paper's five sets).
 function jointSetText(name) {
-  return JOINT_SETS[name] ? `${name} (${JOINT_SETS[name]})` : name;
+  const set = SKELETON.sets[name];
+  return set ? `${name} (${set.description})` : name;
 }
 
 function facingText(p) {
@@ -591,10 +601,11 @@ function drawSkeleton2d(ctx, person, scale, size, surest) {
   const points = person.joints_2d.map(([x, y]) => [x * scale, y * scale]);
   const ok = (i) => points[i].every(Number.isFinite);
   ctx.lineCap = "round";
-  for (const [child, parent] of LIMBS) {
+  for (const [child, parent] of SKELETON.limbs) {
     if (!ok(child) || !ok(parent)) continue;
     // a pale halo first, so that the limb shows on dark and light photos alike
-    for (const [style, width] of [["rgba(255, 255, 255, 0.75)", 0.013], [limbColour(child), 0.008]]) {
+    const strokes = [["rgba(255, 255, 255, 0.75)", 0.013], [SKELETON.colours[child], 0.008]];
+    for (const [style, width] of strokes) {
       ctx.strokeStyle = style;
       ctx.lineWidth = Math.max(2, width * size);
       ctx.beginPath();
@@ -679,7 +690,8 @@ function placeScene(people) {
     .map(([i]) => i);
   const skeletons = order.map((index, slot) => {
     const joints = people[index].joints_3d;
-    const hips = [0, 2].map((axis) => (joints[R_HIP][axis] + joints[L_HIP][axis]) / 2);
+    const [right, left] = SKELETON.hips;
+    const hips = [0, 2].map((axis) => (joints[right][axis] + joints[left][axis]) / 2);
     const shift = (slot - (order.length - 1) / 2) * PERSON_SPACING_MM;
     return joints.map(([x, y, z]) => [x - hips[0] + shift, -y, -(z - hips[1])]);
   });
@@ -849,11 +861,11 @@ function drawSkeletons3d(ctx, project, scene, ratio) {
   const joints = [];
   for (const skeleton of scene.skeletons) {
     const points = skeleton.map(project);
-    for (const [child, parent] of LIMBS) {
+    for (const [child, parent] of SKELETON.limbs) {
       const [a, b] = [points[child], points[parent]];
-      if (a && b) limbs.push({ a, b, depth: (a[2] + b[2]) / 2, colour: limbColour(child) });
+      if (a && b) limbs.push({ a, b, depth: (a[2] + b[2]) / 2, colour: SKELETON.colours[child] });
     }
-    points.forEach((p, i) => p && joints.push({ p, depth: p[2], colour: limbColour(i) }));
+    points.forEach((p, i) => p && joints.push({ p, depth: p[2], colour: SKELETON.colours[i] }));
   }
   const focal = ctx.canvas.height / 2 / Math.tan(FIELD_OF_VIEW / 2);
   ctx.lineCap = "round";

@@ -402,3 +402,17 @@ def test_the_page_fits_a_phone(open_page, site, photo):
     assert page.locator("#camera").is_hidden()
     assert page.get_attribute("#view2d", "data-joints") == "14"
     assert "camera.jpg" in page.inner_text("#facts")
+
+
+def test_the_legend_is_drawn_in_the_services_colours(open_page, site):
+    """The page keeps no copy of the skeleton: its colours, like its limbs, come from
+    GET /v1/skeleton (ds3d.viz.overlay's)."""
+    colours = httpx.get(f"{site}/v1/skeleton").json()["colours"]
+    page = open_page(site)
+    for side in ("right", "left", "centre"):
+        selector = f".swatch.{side}"
+        colour = "s => getComputedStyle(document.querySelector(s), '::before').backgroundColor"
+        # transparent until the page has the skeleton
+        page.wait_for_function(f"s => ({colour})(s) !== 'rgba(0, 0, 0, 0)'", arg=selector)
+        shown = page.evaluate(colour, selector)
+        assert shown == "rgb({}, {}, {})".format(*colours[side]), side

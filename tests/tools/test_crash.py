@@ -1,6 +1,6 @@
 """One replica killed under load: two `ds3d-serve` replicas on the small model behind a real nginx
 (docker/local_replicas.sh), clients without retries (tools.crashtest), one replica SIGKILLed.
-The minute-long run on the bundled model and its figures: docs/RESULTS.md."""
+The minute-long run on the bundled model and its figures: docs/service-results.md."""
 
 from __future__ import annotations
 

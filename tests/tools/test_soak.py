@@ -1,6 +1,6 @@
 """A short soak (tools.soak) against a real `ds3d-serve` process on a small model: a mix of
 good and bad requests for a minute, the server's memory and descriptors sampled from its
-/metrics. The 30-minute soak and its figures: docs/RESULTS.md."""
+/metrics. The 30-minute soak and its figures: docs/service-results.md."""
 
 from __future__ import annotations
 
