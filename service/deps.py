@@ -20,8 +20,10 @@ R = TypeVar("R", covariant=True)
 
 
 class ModelQueue(Protocol[T, R]):
-    """A model queue as the routes and the health checks use it: service.microbatch.MicroBatcher
-    in the plain service, service.ray_serve.ServeQueue on Ray Serve."""
+    """A model queue as the routes, the health checks and the lifespans use it (and all they
+    know of it): service.microbatch.MicroBatcher in the plain service, service.ray_serve.ServeQueue
+    on Ray Serve. submit and submit_many raise service.microbatch.QueueError's kinds, admitting
+    a request by service.microbatch.admit."""
 
     @property
     def depth(self) -> int: ...
@@ -37,6 +39,7 @@ class ModelQueue(Protocol[T, R]):
     async def submit_many(
         self, items: Sequence[T], timeout_s: float, caller: str = ""
     ) -> list[R]: ...
+    async def close(self, drain_timeout_s: float) -> None: ...
 
 
 @dataclass

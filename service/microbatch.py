@@ -24,7 +24,7 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -35,19 +35,23 @@ R = TypeVar("R")
 log = logging.getLogger("service")
 
 
-class QueueFull(Exception):
+class QueueError(Exception):
+    """Base of what a model queue's submit raises of its own (the service answers each)."""
+
+
+class QueueFull(QueueError):
     """The queue cannot take the items of this request now; retry later."""
 
 
-class CallerQueueFull(Exception):
+class CallerQueueFull(QueueError):
     """This caller already has its share of the queue waiting; retry later."""
 
 
-class DeadlineExceeded(Exception):
+class DeadlineExceeded(QueueError):
     """The request was not answered before its deadline."""
 
 
-class ShuttingDown(Exception):
+class ShuttingDown(QueueError):
     """The batcher is closing and takes no new work."""
 
 
@@ -75,13 +79,45 @@ class ProgressClock:
         return 0.0 if self._since is None else time.monotonic() - self._since
 
 
-class ItemFailed(Exception):
+class ItemFailed(QueueError):
     """The batch function failed on item `index` of a request; `__cause__` says why."""
 
     def __init__(self, index: int, cause: BaseException):
         super().__init__(f"item {index}: {cause}")
         self.index = index
         self.cause = cause
+
+
+def admit(
+    count: int,
+    *,
+    closing: bool,
+    depth: int,
+    max_queue: int,
+    waiting: int,
+    max_queue_per_caller: int | None,
+) -> None:
+    """The admission checks of a model queue, for a request of `count` items from a caller who
+    has `waiting` items queued, while the queue holds `depth`: ShuttingDown when it is
+    `closing`, QueueFull when the items do not all fit in max_queue, CallerQueueFull when the
+    caller has items waiting and these would take it over max_queue_per_caller (None: no limit
+    but the queue's; a request that alone is larger goes in when the caller has none waiting)."""
+    if closing:
+        raise ShuttingDown("the service is shutting down")
+    if depth + count > max_queue:
+        raise QueueFull(f"{depth} items queued, limit {max_queue}")
+    cap = max_queue_per_caller
+    if cap is not None and waiting and waiting + count > cap:
+        raise CallerQueueFull(f"{waiting} items of this caller wait, its limit is {cap}")
+
+
+async def first_result(results: Awaitable[list[R]]) -> R:
+    """The result of a one-item submit_many; a failed item raises what it failed with
+    (ItemFailed's cause), every other error as it is."""
+    try:
+        return (await results)[0]
+    except ItemFailed as e:
+        raise e.cause from None
 
 
 @dataclass
@@ -173,29 +209,24 @@ class MicroBatcher(Generic[T, R]):
 
     async def submit(self, item: T, timeout_s: float, caller: str = "") -> R:
         """One item's result; raises what submit_many raises (ItemFailed's cause for a bad item)."""
-        try:
-            return (await self.submit_many([item], timeout_s, caller))[0]
-        except ItemFailed as e:
-            raise e.cause from None
+        return await first_result(self.submit_many([item], timeout_s, caller))
 
     async def submit_many(self, items: Sequence[T], timeout_s: float, caller: str = "") -> list[R]:
         """Queue all items at once (or none) in `caller`'s queue and wait for their results, in
         order.
 
-        Raises QueueFull when they do not all fit, CallerQueueFull when the caller has items
-        waiting and these would take it over max_queue_per_caller (a request that alone is
-        larger goes in when the caller has none waiting), ShuttingDown after close(),
-        DeadlineExceeded when they are not all done within timeout_s, ItemFailed for the first
-        item that failed.
+        Raises what `admit` raises (QueueFull, CallerQueueFull; ShuttingDown after close() or
+        before start()), DeadlineExceeded when they are not all done within timeout_s,
+        ItemFailed for the first item that failed.
         """
-        if self._closing or self._worker is None:
-            raise ShuttingDown("the service is shutting down")
-        if self._depth + len(items) > self.max_queue:
-            raise QueueFull(f"{self._depth} items queued, limit {self.max_queue}")
-        waiting = len(self._pending.get(caller, ()))
-        cap = self.max_queue_per_caller
-        if cap is not None and waiting and waiting + len(items) > cap:
-            raise CallerQueueFull(f"{waiting} items of this caller wait, its limit is {cap}")
+        admit(
+            len(items),
+            closing=self._closing or self._worker is None,
+            depth=self._depth,
+            max_queue=self.max_queue,
+            waiting=len(self._pending.get(caller, ())),
+            max_queue_per_caller=self.max_queue_per_caller,
+        )
         loop = asyncio.get_running_loop()
         now = loop.time()
         jobs = [_Job(item, loop.create_future(), now, now + timeout_s) for item in items]
@@ -211,8 +242,8 @@ class MicroBatcher(Generic[T, R]):
                 fut.cancel()
             raise DeadlineExceeded(f"not answered within {timeout_s:g} s")
         for i, fut in enumerate(futures):
-            if fut.exception() is not None:
-                raise ItemFailed(i, fut.exception())
+            if (error := fut.exception()) is not None:
+                raise ItemFailed(i, error)
         return [fut.result() for fut in futures]
 
     async def close(self, drain_timeout_s: float) -> None:

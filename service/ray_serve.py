@@ -12,10 +12,10 @@ Replica bounds and backpressure: --min-replicas, --max-replicas, --target-ongoin
 --max-ongoing-requests, --max-queued-requests (also DS3D_RAY_MIN_REPLICAS, ...).
 
 Each replica serves the app of `service.app.create_app` (same routes, JSON errors, access
-guard, metrics), with a runtime whose lift and pose queues (`ServeQueue`) have the MicroBatcher
-interface the routes use but batch through `@serve.batch` methods (max_lift_batch_size /
-max_batch_size, max_wait_ms). A batch the engine refuses is rerun item by item, so one bad item
-fails only its own request.
+guard, metrics), with a runtime whose lift and pose queues (`ServeQueue`) are ModelQueues
+(service.deps) as the plain service's MicroBatchers are, but batch through `@serve.batch`
+methods (max_lift_batch_size / max_batch_size, max_wait_ms). A batch the engine refuses is
+rerun item by item, so one bad item fails only its own request.
 
 Overload answers 503 with Retry-After (retry_after_s) twice over: a replica holding
 max_lift_queue / max_queue items answers the service's JSON `overloaded`; past
@@ -52,12 +52,11 @@ from service.deps import Runtime
 from service.engine import Engine
 from service.microbatch import (
     BatchStats,
-    CallerQueueFull,
     DeadlineExceeded,
     ItemFailed,
     ProgressClock,
-    QueueFull,
-    ShuttingDown,
+    admit,
+    first_result,
 )
 from service.settings import Settings
 
@@ -78,11 +77,11 @@ SCALING = {
 
 
 class ServeQueue(Generic[T, R]):
-    """One model queue of a replica, with the MicroBatcher interface the routes and the health
-    checks use (submit, submit_many, depth, saturated, running, stalled_s). Each item is one call
-    of `run_item`, a `@serve.batch` method: Ray forms the batches. `run_item` answers an item's
-    output or the exception it failed with. (Each request here gives up at its deadline, so
-    stalled_s stays below request_timeout_s: a stuck replica is Ray's health check's to find.)"""
+    """One model queue of a replica, a service.deps.ModelQueue as MicroBatcher is (the same
+    admission checks, errors and health figures). Each item is one call of `run_item`, a
+    `@serve.batch` method: Ray forms the batches. `run_item` answers an item's output or the
+    exception it failed with. (Each request here gives up at its deadline, so stalled_s stays
+    below request_timeout_s: a stuck replica is Ray's health check's to find.)"""
 
     def __init__(
         self,
@@ -93,18 +92,27 @@ class ServeQueue(Generic[T, R]):
         self._run_item = run_item
         self.max_queue = max_queue
         self.max_queue_per_caller = max_queue_per_caller
-        self.depth = 0  # items of this replica not yet answered
+        self._depth = 0  # items of this replica not yet answered
         self._per_caller: collections.Counter[str] = collections.Counter()
-        self.running = True
+        self._closing = False
         self._clock = ProgressClock()
 
     @property
+    def depth(self) -> int:
+        """Items of this replica not yet answered."""
+        return self._depth
+
+    @property
     def saturated(self) -> bool:
-        return self.depth >= self.max_queue
+        return self._depth >= self.max_queue
+
+    @property
+    def running(self) -> bool:
+        return not self._closing
 
     @property
     def closing(self) -> bool:
-        return not self.running
+        return self._closing
 
     @property
     def stalled_s(self) -> float:
@@ -112,22 +120,20 @@ class ServeQueue(Generic[T, R]):
         return self._clock.stalled_s
 
     async def submit(self, item: T, timeout_s: float, caller: str = "") -> R:
-        try:
-            return (await self.submit_many([item], timeout_s, caller))[0]
-        except ItemFailed as e:
-            raise e.cause from None
+        return await first_result(self.submit_many([item], timeout_s, caller))
 
     async def submit_many(self, items: Sequence[T], timeout_s: float, caller: str = "") -> list[R]:
-        """As MicroBatcher.submit_many: QueueFull, CallerQueueFull, ShuttingDown,
-        DeadlineExceeded, or ItemFailed for the first item that failed."""
-        if not self.running:
-            raise ShuttingDown("the service is shutting down")
-        if self.depth + len(items) > self.max_queue:
-            raise QueueFull(f"{self.depth} items queued, limit {self.max_queue}")
-        waiting, cap = self._per_caller[caller], self.max_queue_per_caller
-        if waiting and waiting + len(items) > cap:
-            raise CallerQueueFull(f"{waiting} items of this caller wait, its limit is {cap}")
-        self.depth += len(items)
+        """As MicroBatcher.submit_many: what `admit` raises, DeadlineExceeded, or ItemFailed for
+        the first item that failed."""
+        admit(
+            len(items),
+            closing=self._closing,
+            depth=self._depth,
+            max_queue=self.max_queue,
+            waiting=self._per_caller[caller],
+            max_queue_per_caller=self.max_queue_per_caller,
+        )
+        self._depth += len(items)
         self._per_caller[caller] += len(items)
         self._clock.work_arrived()
         try:
@@ -136,15 +142,22 @@ class ServeQueue(Generic[T, R]):
         except TimeoutError:
             raise DeadlineExceeded(f"not answered within {timeout_s:g} s") from None
         finally:
-            self.depth -= len(items)
-            self._clock.progressed(more_work=self.depth > 0)
+            self._depth -= len(items)
+            self._clock.progressed(more_work=self._depth > 0)
             self._per_caller[caller] -= len(items)
             if not self._per_caller[caller]:
                 del self._per_caller[caller]
+        results: list[R] = []
         for i, outcome in enumerate(outcomes):
             if isinstance(outcome, Exception):
                 raise ItemFailed(i, outcome)
-        return outcomes  # type: ignore[return-value]
+            results.append(outcome)
+        return results
+
+    async def close(self, drain_timeout_s: float) -> None:
+        """Take no new work. What is in flight is Ray Serve's to drain (its graceful shutdown),
+        so this returns at once."""
+        self._closing = True
 
 
 class OneRequestId:
@@ -205,12 +218,12 @@ class Ds3dServe:
         for name, q in (("lift", lift), ("pose", pose)):
             if q is not None:
                 metrics.queue_depth.labels(name).set_function(lambda q=q: q.depth)
-        app.state.runtime = Runtime(self.engine, lift, pose)  # type: ignore[arg-type]
+        app.state.runtime = Runtime(self.engine, lift, pose)
         log.info("replica serving model %s", self.engine.model_id)
         yield
         for q in (lift, pose):
             if q is not None:
-                q.running = False
+                await q.close(drain_timeout_s=s.request_timeout_s)
         self.executor.shutdown(wait=True)
 
     # The batch sizes and waits are set from the settings in __init__.
