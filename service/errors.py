@@ -1,5 +1,6 @@
 """Every error the service answers is JSON `{"error": {"code", "message"[, "details"]}}`.
-This module maps the library's typed errors, the batcher's and the framework's to status codes."""
+This module maps the library's typed errors (one table, LIBRARY_ERRORS), the model queues' and
+the framework's to status codes."""
 
 from __future__ import annotations
 
@@ -10,11 +11,19 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from ds3d.errors import InvalidBox, InvalidImage, InvalidPose
+from ds3d.errors import (
+    DataFormatError,
+    Ds3dError,
+    ImageTooLarge,
+    InvalidBox,
+    InvalidImage,
+    InvalidPose,
+)
 from service.microbatch import (
     CallerQueueFull,
     DeadlineExceeded,
     ItemFailed,
+    QueueError,
     QueueFull,
     ShuttingDown,
 )
@@ -45,6 +54,24 @@ def error_response(err: ApiError) -> JSONResponse:
     return JSONResponse({"error": body}, status_code=err.status, headers=err.headers)
 
 
+# Each of the library's errors as (status, code), looked up most specific first (a subclass
+# not listed is answered as its nearest base). A 5xx is the service's own fault (DataFormatError:
+# its models): logged and answered as `internal`, without the error's text.
+LIBRARY_ERRORS: dict[type[Ds3dError], tuple[int, str]] = {
+    InvalidPose: (422, "invalid_pose"),
+    InvalidBox: (422, "invalid_box"),
+    InvalidImage: (422, "invalid_image"),
+    ImageTooLarge: (422, "invalid_image"),
+    DataFormatError: (500, "internal"),
+    Ds3dError: (500, "internal"),
+}
+
+
+def library_answer(kind: type[Ds3dError]) -> tuple[int, str]:
+    """LIBRARY_ERRORS' (status, code) for `kind`: its own, else that of its nearest base."""
+    return next(LIBRARY_ERRORS[base] for base in kind.__mro__ if base in LIBRARY_ERRORS)
+
+
 def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
     """The answer for an exception raised while serving a request."""
     retry = {"Retry-After": str(retry_after_s)}
@@ -64,12 +91,10 @@ def to_api_error(exc: BaseException, retry_after_s: int) -> ApiError:
         return ApiError(503, "shutting_down", str(exc), retry)
     if isinstance(exc, DeadlineExceeded):
         return ApiError(504, "timeout", f"the request timed out: {exc} (request_timeout_s)")
-    if isinstance(exc, InvalidPose):
-        return ApiError(422, "invalid_pose", str(exc))
-    if isinstance(exc, InvalidBox):
-        return ApiError(422, "invalid_box", str(exc))
-    if isinstance(exc, InvalidImage):
-        return ApiError(422, "invalid_image", str(exc))
+    if isinstance(exc, Ds3dError):
+        status, code = library_answer(type(exc))
+        if status < 500:
+            return ApiError(status, code, str(exc))
     log.exception("unexpected error", exc_info=exc)
     return ApiError(500, "internal", f"internal error: {type(exc).__name__}")
 
@@ -115,13 +140,6 @@ def install_handlers(app: FastAPI, retry_after_s: int) -> None:
     async def _mapped(_: Request, exc: Exception):
         return error_response(to_api_error(exc, retry_after_s))
 
-    for kind in (
-        ItemFailed,
-        CallerQueueFull,
-        QueueFull,
-        ShuttingDown,
-        DeadlineExceeded,
-        InvalidPose,
-        InvalidImage,
-    ):
+    # Each base once: the library's errors by LIBRARY_ERRORS, the model queues' by to_api_error.
+    for kind in (Ds3dError, QueueError):
         app.add_exception_handler(kind, _mapped)
