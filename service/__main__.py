@@ -31,7 +31,7 @@ def parse_settings(argv: list[str] | None = None) -> Settings:
         epilog="Each setting is a flag and a DS3D_* env var: flags override env vars, which "
         "override the defaults.",
     )
-    cli = CliSettingsSource(
+    cli: CliSettingsSource[argparse.ArgumentParser] = CliSettingsSource(
         Settings,
         root_parser=parser,
         cli_kebab_case=True,
@@ -87,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         log_level=settings.log_level,
         access_log=False,  # service.access.rules logs each request, without its query or any key
         limit_concurrency=settings.max_connections,
-        timeout_keep_alive=settings.keep_alive_s,
+        # seconds as a float (uvicorn's hint says int; its timer takes any number)
+        timeout_keep_alive=settings.keep_alive_s,  # type: ignore[arg-type]
         # a backstop: the app refuses a head over max_header_bytes with a 431 that names it
         h11_max_incomplete_event_size=4 * settings.max_header_bytes,
         # Let in-flight requests finish (they are bounded by the request timeout).

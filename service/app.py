@@ -11,6 +11,7 @@ from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from functools import partial
+from typing import Any
 
 import torch
 from fastapi import FastAPI, Request
@@ -69,14 +70,15 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     return app
 
 
-def openapi_with_limits(app: FastAPI, settings: Settings) -> dict:
+def openapi_with_limits(app: FastAPI, settings: Settings) -> dict[str, Any]:
     """The app's OpenAPI document with the limits that its settings set, so that clients
     generated from it know them: the items of one /v1/lift request."""
-    if app.openapi_schema is None:
-        schema = FastAPI.openapi(app)
+    schema = app.openapi_schema
+    if schema is None:
+        schema = FastAPI.openapi(app)  # made once and kept as app.openapi_schema
         items = schema["components"]["schemas"]["LiftRequest"]["properties"]["items"]
         items["maxItems"] = min(settings.max_lift_items, settings.max_lift_queue)
-    return app.openapi_schema
+    return schema
 
 
 def serving_lifespan(
@@ -91,9 +93,11 @@ def serving_lifespan(
         metrics: Metrics = app.state.metrics
         torch.set_num_threads(settings.torch_threads)
         executor = model_executor(settings.torch_threads)
-        engine = preloaded or await asyncio.get_running_loop().run_in_executor(
-            executor, partial(Engine.load, settings.model_dir, settings.device)
-        )
+        engine = preloaded
+        if engine is None:
+            engine = await asyncio.get_running_loop().run_in_executor(
+                executor, partial(Engine.load, settings.model_dir, settings.device)
+            )
         engine.on_timings = metrics.observe_stages
         runtime = start_batchers(engine, executor, settings, metrics)
         app.state.runtime = runtime

@@ -16,7 +16,7 @@ from service.metrics import Metrics
 from service.settings import Settings
 
 T = TypeVar("T", contravariant=True)
-R = TypeVar("R", covariant=True)
+R = TypeVar("R")  # invariant: submit_many answers a list[R]
 
 
 class ModelQueue(Protocol[T, R]):

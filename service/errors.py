@@ -5,6 +5,7 @@ the framework's to status codes."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -39,7 +40,7 @@ class ApiError(Exception):
         status: int,
         code: str,
         message: str,
-        headers: dict | None = None,
+        headers: Mapping[str, str] | None = None,
         details: list[dict] | None = None,
     ):
         super().__init__(message)

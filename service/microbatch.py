@@ -129,6 +129,13 @@ class _Job(Generic[T, R]):
 
 
 @dataclass
+class _Failed:
+    """An item's outcome when the batch function raised on it (else its result)."""
+
+    error: Exception
+
+
+@dataclass
 class BatchStats:
     """What the worker reports after each batch: its size, the seconds the batch function took
     (all of its calls, the one-by-one reruns included), each item's wait, and how many items it
@@ -321,10 +328,10 @@ class MicroBatcher(Generic[T, R]):
             results = await self._call(loop, [j.item for j in jobs])
             if len(results) != len(jobs):
                 raise RuntimeError(f"batch function gave {len(results)} results for {len(jobs)}")
-            outcomes: list[tuple[bool, object]] = [(True, r) for r in results]
+            outcomes: list[R | _Failed] = list(results)
         except Exception as batch_error:
             if len(jobs) == 1:
-                outcomes = [(False, batch_error)]
+                outcomes = [_Failed(batch_error)]
             else:
                 outcomes = [await self._run_one(loop, job.item) for job in jobs]
         seconds = time.perf_counter() - t0
@@ -334,13 +341,13 @@ class MicroBatcher(Generic[T, R]):
             if self._batch_estimate_s == 0.0
             else 0.7 * self._batch_estimate_s + 0.3 * seconds
         )
-        for job, (ok, value) in zip(jobs, outcomes, strict=True):
+        for job, outcome in zip(jobs, outcomes, strict=True):
             if job.future.done():
                 continue
-            if ok:
-                job.future.set_result(value)
+            if isinstance(outcome, _Failed):
+                job.future.set_exception(outcome.error)
             else:
-                job.future.set_exception(value)
+                job.future.set_result(outcome)
         self._report(BatchStats(len(jobs), seconds, [started - j.enqueued for j in jobs], dropped))
 
     async def _call(self, loop: asyncio.AbstractEventLoop, items: list[T]) -> Sequence[R]:
@@ -353,12 +360,12 @@ class MicroBatcher(Generic[T, R]):
         except BaseException as error:
             raise BatchFailed(f"the batch failed: {type(error).__name__}: {error}") from error
 
-    async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> tuple[bool, object]:
+    async def _run_one(self, loop: asyncio.AbstractEventLoop, item: T) -> R | _Failed:
         try:
             (result,) = await self._call(loop, [item])
-            return True, result
+            return result
         except Exception as e:
-            return False, e
+            return _Failed(e)
 
     def _report(self, stats: BatchStats) -> None:
         """on_batch(stats); a failing observer is logged, not let through to the worker."""

@@ -38,7 +38,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, TypeVar, cast
 
 import torch
 from fastapi import FastAPI
@@ -262,7 +262,9 @@ class Ds3dServe:
 def build_app(settings: Settings, **scaling: int) -> serve.Application:
     """The Serve application for `settings`; `scaling`: keys of SCALING (default: theirs)."""
     opts = {name: default for name, (default, _) in SCALING.items()} | scaling
-    return Ds3dServe.options(
+    # The class decorators made Ds3dServe a Deployment, which type checkers do not see.
+    deployment = cast(serve.Deployment, Ds3dServe)
+    return deployment.options(
         autoscaling_config={
             "min_replicas": opts["min_replicas"],
             "initial_replicas": opts["min_replicas"],

@@ -170,7 +170,7 @@ class Health(BaseModel):
 
 
 # The error answers of the model routes, as their OpenAPI lists them.
-ERROR_RESPONSES = {
+ERROR_RESPONSES: dict[int | str, dict[str, object]] = {
     status: {"model": ErrorResponse, "description": what}
     for status, what in {
         400: "a body that cannot be parsed as its content type says (e.g. broken multipart)",

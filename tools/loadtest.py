@@ -147,7 +147,8 @@ def plot(samples: list[Sample], title: str, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(8, 4))
     for status in sorted({s.status for s in samples}):
         pts = [(s.start_s, s.latency_s * 1000) for s in samples if s.status == status]
-        ax.scatter(*zip(*pts, strict=True), s=4, label=f"{status} ({len(pts)})")
+        starts, latencies = zip(*pts, strict=True)
+        ax.scatter(starts, latencies, s=4, label=f"{status} ({len(pts)})")
     ax.set_xlabel("request start (s)")
     ax.set_ylabel("latency (ms)")
     ax.set_yscale("log")
@@ -181,7 +182,9 @@ class Runner:
             resp = None
         end = time.perf_counter()
         self.samples.append(Sample(start - self.t0, end - start, status))
-        return float(resp.headers.get("retry-after", 1)) if status == "429" else 0.0
+        if resp is None or status != "429":
+            return 0.0
+        return float(resp.headers.get("retry-after", 1))
 
 
 async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, float, float]:
@@ -196,7 +199,11 @@ async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, fl
         for sample in family.samples:
             if sample.name in totals and sample.labels.get("queue") == queue:
                 totals[sample.name] = sample.value
-    return tuple(totals.values())
+    return (
+        totals["ds3d_batch_size_sum"],
+        totals["ds3d_batch_size_count"],
+        totals["ds3d_deadline_dropped_items_total"],
+    )
 
 
 async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_requests: int):

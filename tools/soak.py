@@ -22,6 +22,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit
 
 import httpx
@@ -109,6 +110,7 @@ async def soak(args) -> tuple[dict, dict[str, list[Sample]]]:
         stop_at = t0 + args.duration
 
         async def request(kind: str, rng: random.Random) -> None:
+            kwargs: dict[str, Any]  # httpx.AsyncClient.post's keyword arguments
             if kind == "pose":
                 name, data = rng.choice(images)
                 path, kwargs = "/v1/pose", {"files": {"image": (name, data)}}
