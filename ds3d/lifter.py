@@ -200,6 +200,7 @@ class Lifter:
         Every stage runs on the (pose, set) problems that config.partial_sets scores, each
         stage once for all of them."""
         query = self.query(joints_2d, visible, intrinsics)
+        timings: dict[str, float]
         problems, timings = self.problems(query), {}
         found = self.neighbours(problems, timings=timings)
         with stage_timer(timings, "selection", self.device):

@@ -113,7 +113,7 @@ class PipelineResult:
 
     def rows(self, index: torch.Tensor) -> PipelineResult:
         """The people `index` (K,) int64, in that order."""
-        fields = {}
+        fields: dict = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, torch.Tensor):

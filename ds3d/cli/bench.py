@@ -139,8 +139,8 @@ def bench_retrieval(args) -> int:
 
     lifter = load_lifter(args)
     rng = np.random.default_rng(1)
-    queries = benchmark_poses(lifter, args.queries) + rng.normal(0, 5, (args.queries, 14, 2))
-    queries = torch.from_numpy(queries.astype(np.float32))
+    noisy = benchmark_poses(lifter, args.queries) + rng.normal(0, 5, (args.queries, 14, 2))
+    queries = torch.from_numpy(noisy.astype(np.float32))
     exact = PoseRetriever(lifter.database, IndexConfig(kind="flat", storage="f32"), cache=False)
     nprobes = [int(n) for n in args.nprobe.split(",")]
     with progress(total=args.queries * (1 + len(nprobes)), desc="retrieval", unit="query") as bar:

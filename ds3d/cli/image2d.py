@@ -7,6 +7,7 @@ import logging
 import shutil
 from dataclasses import asdict, fields, replace
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -25,7 +26,7 @@ from ds3d.util.progress import logging_above_bars
 
 # `--small`: a few dozen images and a handful of shallow trees; trains in well under a minute
 # and exists to exercise the whole path (tests, CI), not to be accurate.
-SMALL = {
+SMALL: dict[str, Any] = {  # TrainConfig's fields for --small
     "max_images": 40,
     "trees": (3, 3),
     "images_per_tree": 20,

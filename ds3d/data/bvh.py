@@ -18,6 +18,7 @@ import gzip
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -97,11 +98,13 @@ def parse_bvh(text: str, source: str = "<string>") -> BvhMotion:
     return BvhMotion(*hierarchy, frame_time=frame_time, motion=motion)
 
 
-def _parse_hierarchy(lines: list[str], source: str):
+def _parse_hierarchy(
+    lines: list[str], source: str
+) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, tuple[tuple[str, ...], ...]]:
     tokens = [(tok, n + 1) for n, line in enumerate(lines) for tok in line.split()]
     pos = 0
 
-    def fail(message: str, line: int):
+    def fail(message: str, line: int) -> NoReturn:
         raise DataFormatError(f"{source}, line {line}: {message}")
 
     def take(expected: str | None = None) -> tuple[str, int]:
@@ -149,11 +152,11 @@ def _parse_hierarchy(lines: list[str], source: str):
             count_tok, line = take()
             if not count_tok.isdigit():
                 fail(f"bad channel count {count_tok!r}", line)
-            declared = tuple(take() for _ in range(int(count_tok)))
-            for ch, line in declared:
+            taken = [take() for _ in range(int(count_tok))]
+            for ch, line in taken:
                 if ch.lower() not in _CHANNELS:
                     fail(f"unknown channel {ch!r} for joint {name!r}", line)
-            declared = tuple(ch for ch, _ in declared)
+            declared = tuple(ch for ch, _ in taken)
         channels.append(declared)
         while True:
             tok, line = take()
@@ -183,7 +186,9 @@ def _parse_hierarchy(lines: list[str], source: str):
     )
 
 
-def _parse_motion(lines: list[str], start: int, num_channels: int, source: str):
+def _parse_motion(
+    lines: list[str], start: int, num_channels: int, source: str
+) -> tuple[float, np.ndarray]:
     header: dict[str, float] = {}
     row = start
     for key in ("Frames:", "Frame Time:"):
@@ -222,7 +227,7 @@ def _parse_motion(lines: list[str], start: int, num_channels: int, source: str):
     return frame_time, motion
 
 
-def _raise_bad_row(body: list[str], first_line: int, num_channels: int, source: str):
+def _raise_bad_row(body: list[str], first_line: int, num_channels: int, source: str) -> NoReturn:
     for line_no, line in enumerate(body, start=first_line + 1):
         values = line.split()
         if values and len(values) != num_channels:

@@ -36,7 +36,7 @@ REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
 def pck_report(pred: torch.Tensor, gt: torch.Tensor, per_joint: bool = False) -> dict:
     """pred, gt: (N, 14, 2) px -> PCK@0.2 (and per joint) and the mean pixel error."""
     joint_pck = pck(pred, gt)
-    report = {"pck@0.2": round(float(joint_pck.mean()), 4)}
+    report: dict[str, float | dict[str, float]] = {"pck@0.2": round(float(joint_pck.mean()), 4)}
     if per_joint:
         report["pck@0.2_per_joint"] = {
             n: round(float(v), 4) for n, v in zip(JOINT_NAMES, joint_pck, strict=True)
@@ -69,7 +69,7 @@ def evaluate_2d(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> 
             bar.update(len(images))
     seconds = time.perf_counter() - t0
     gt = torch.from_numpy(ann.joints)
-    out = {"n_images": len(ann), "seconds": round(seconds, 1)}
+    out: dict[str, float | dict] = {"n_images": len(ann), "seconds": round(seconds, 1)}
     for name, pred in (("psm", torch.cat(preds)), ("unary_argmax", torch.cat(argmax))):
         out[name] = pck_report(pred, gt, per_joint=True)
     return out

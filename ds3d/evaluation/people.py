@@ -103,6 +103,7 @@ def compose(
         placed_boxes.append(person)
         people.append((shifted, located, source, fraction))
     joints, located, sources_kept, fractions = zip(*people, strict=True)
+    assert canvas is not None  # the first person always fits
     return Canvas(
         canvas,
         np.stack(joints).astype(np.float32),

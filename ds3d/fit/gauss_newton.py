@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import torch
 
@@ -49,16 +50,18 @@ class Residuals:
     def whitened(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The reweighted least-squares system at the current point as A (P, R', n) and b
         (P, R'), with J^T W J = A^T A and J^T W r = A^T b."""
+        jacobian = self.jacobian
+        assert jacobian is not None, "the residuals were evaluated without their jacobian"
         if self.robust:  # rho'(e) = e^(-3/4) / 4: the majoriser's weight
             irls = self.weight * 0.25 * (self.squared + EPS).pow(-0.75)
         else:
             irls = self.weight
-        if self.jacobian.shape[1] == 1:  # shared: the weighted residuals sum first
+        if jacobian.shape[1] == 1:  # shared: the weighted residuals sum first
             root = irls.sum(-1).clamp_min(1e-30).sqrt()[:, None]  # (P, 1)
             combined = (irls[..., None] * self.value).sum(1) / root  # (P, R)
-            return self.jacobian[:, 0] * root[..., None], combined
+            return jacobian[:, 0] * root[..., None], combined
         root = irls.sqrt()[..., None]  # (P, T, 1)
-        return (self.jacobian * root[..., None]).flatten(1, 2), (self.value * root).flatten(1)
+        return (jacobian * root[..., None]).flatten(1, 2), (self.value * root).flatten(1)
 
 
 Evaluate = Callable[[torch.Tensor, bool], list[Residuals]]
@@ -66,8 +69,8 @@ Retract = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 def total_energy(groups: list[Residuals]) -> torch.Tensor:
-    """(P,) the energy of all groups."""
-    return sum(group.energy() for group in groups)
+    """(P,) the energy of all groups (there is at least one)."""
+    return cast(torch.Tensor, sum(group.energy() for group in groups))
 
 
 def add(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:

@@ -238,7 +238,7 @@ class PoseProblem:
         def evaluate(z: torch.Tensor, with_jacobian: bool) -> list[Residuals]:
             pose, scales = self.pose(z), z[:, self.scale_columns].exp()
             scaling = scaling_map(scales) if g else None
-            person = scaling @ pose if g else pose
+            person = pose if scaling is None else scaling @ pose
             shift = self.projection(z, params)[:, 3:]
             out = project_rotated(rotate(person[:, None], rotation), shift, frame, with_jacobian)
             uv = (out[0] if with_jacobian else out)[:, 0]

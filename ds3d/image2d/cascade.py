@@ -89,7 +89,8 @@ def layer_context(
     unaries = unaries_from_probs(probs.float(), params.unary_blur)
     cells = infer(unaries * params.unary_weight, mixtures, stride=float(params.stride)).cells
     sigma = params.context_pose_sigma / params.stride
-    return torch.cat([maps, pose_heatmaps(cells, *maps.shape[-2:], sigma)], dim=1)
+    height, width = maps.shape[-2:]
+    return torch.cat([maps, pose_heatmaps(cells, height, width, sigma)], dim=1)
 
 
 def cascade_probs(
@@ -113,7 +114,7 @@ def cascade_probs(
     # In a padded batch, cells outside an image are zeroed: as around a single image.
     inside = None if sizes is None else valid_cells(sizes, h, w, params.stride)
     inside_px = None if sizes is None else valid_cells(sizes, h, w, 1)
-    outputs = []
+    outputs: list[torch.Tensor] = []
     stack = channels
     for i, forest in enumerate(layers):
         if i > 0:

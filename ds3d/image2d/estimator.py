@@ -145,7 +145,8 @@ class PoseEstimator2D:
         the images split over torch.get_num_threads() threads as in estimate(). Raises
         InvalidImage for a malformed image or one too elongated to search (before any work),
         DataFormatError without a joint network."""
-        if self.jointnet is None:
+        jointnet = self.jointnet
+        if jointnet is None:
             raise DataFormatError("the search for people needs the joint network")
         working_crops(images, None, self.params)  # checks the images
         if not images:
@@ -157,7 +158,7 @@ class PoseEstimator2D:
         def run(rows: torch.Tensor) -> list[Proposals]:
             return [
                 propose(
-                    self.jointnet,
+                    jointnet,
                     self.mixtures,
                     images[i],
                     p.canonical_extent,
@@ -180,10 +181,9 @@ class PoseEstimator2D:
             choice, base, logits = self._network_scales(crops, scales, timings)
             best = self._chosen_scales(crops, scales, choice, full, timings, base, logits)
         elif len(scales) == 1 or p.scale_choice == "every":
-            best = None
-            for rel in scales:
-                cand = self._one_scale(crops, rel, full, p, timings)
-                best = cand if best is None else keep_better(best, cand)
+            best = self._one_scale(crops, scales[0], full, p, timings)
+            for rel in scales[1:]:
+                best = keep_better(best, self._one_scale(crops, rel, full, p, timings))
         else:
             # The coarse pass blurs its unaries over the same pixels (at least one cell).
             coarse = replace(
@@ -220,7 +220,9 @@ class PoseEstimator2D:
         parts = []
         for k in choice.unique().tolist():
             rows = torch.nonzero(choice == k).view(-1)
-            reuse = [base_logits[i] for i in rows.tolist()] if k == base else None
+            reuse = None
+            if k == base and base_logits is not None:
+                reuse = [base_logits[i] for i in rows.tolist()]
             part = self._one_scale(
                 [crops[i] for i in rows], scales[k], layers, self.params, timings, logits=reuse
             )
@@ -236,15 +238,17 @@ class PoseEstimator2D:
         scales, the base's index, and each crop's padded_logits at the base scale, for the
         full pass to reuse where the base is chosen (elsewhere the network runs again: its
         maps at the chosen scale are worth half a point, docs/tuning.md)."""
-        p = self.params
+        p, jointnet = self.params, self.jointnet
+        assert jointnet is not None, "the scales are chosen by the joint network"
         base = min(range(len(scales)), key=lambda k: abs(math.log(scales[k])))
         t0 = time.perf_counter()
         resized = [resize_image(c.image, c.base * scales[base]) for c in crops]
         labs = [lab_channels(torch.from_numpy(r)[None]) for r in resized]
         t1 = time.perf_counter()
-        logits = [padded_logits(self.jointnet, lab) for lab in labs]
+        logits = [padded_logits(jointnet, lab) for lab in labs]
         grids = [
-            logits_to_grid(lg, *r.shape[:2], STRIDE) for lg, r in zip(logits, resized, strict=True)
+            logits_to_grid(lg, r.shape[0], r.shape[1], STRIDE)
+            for lg, r in zip(logits, resized, strict=True)
         ]
         t2 = time.perf_counter()
         gh, gw = (bucket(max(g.shape[k] for g in grids)) for k in (2, 3))
@@ -339,11 +343,12 @@ class PoseEstimator2D:
         there). Returns (rows (b,) long, the group's _GroupPose)."""
         rows_t, channels, unaries = group_unaries(images, rows, layers, self.mixtures, p, timings)
         sizes = [images[i].shape[:2] for i in rows]
-        with_net = final and self.jointnet is not None and p.jointnet_weight > 0
-        if with_net:
+        jointnet = self.jointnet if final and p.jointnet_weight > 0 else None
+        with_net = jointnet is not None
+        if jointnet is not None:
             t1 = time.perf_counter()
             known = None if logits is None else [logits[i] for i in rows]
-            net = jointnet_unaries(self.jointnet, channels, sizes, p.stride, p.flip_test, known)
+            net = jointnet_unaries(jointnet, channels, sizes, p.stride, p.flip_test, known)
             timings["jointnet"] += time.perf_counter() - t1
         t1 = time.perf_counter()
         faces = torch.ones(len(rows))

@@ -165,7 +165,7 @@ def second_reads(
 
 
 def read_offsets(
-    channel: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor, padded_shape: tuple[int, int, int]
+    channel: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor, padded_shape: tuple[int, ...]
 ) -> torch.Tensor:
     """Flat offset of a read (channel, dy, dx), relative to the pixel, in one image's padded
     stack of shape padded_shape = (C + 1, Hp, Wp). (F,) integer tensors -> (F,), same dtype."""

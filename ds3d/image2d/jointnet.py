@@ -22,7 +22,9 @@ joint, ds3d.training.jointnet).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -33,6 +35,8 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 from ds3d.image2d.buckets import bucket
 from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import FLIP, NUM_JOINTS
+
+M = TypeVar("M", bound=nn.Module)  # fold_batch_norms gives back the network it was given
 
 STRIDE = 4  # input px per output cell
 # bfloat16 autocast on CPUs whose oneDNN computes it (AVX-512 and newer): twice float32's speed
@@ -124,7 +128,7 @@ class JointNet(nn.Module):
         return self.head(self.up4(self.up8(x16, x8), x4))
 
 
-def fold_batch_norms(net: nn.Module) -> nn.Module:
+def fold_batch_norms(net: M) -> M:
     """For inference: every convolution followed by a batch norm (in eval mode, an affine map
     per channel) becomes one convolution, in place; one pass over the maps less for each.
     Returns net, in eval mode."""
@@ -234,7 +238,7 @@ def jointnet_unaries(
     sizes: list[tuple[int, int]],
     stride: int,
     flip_test: bool = False,
-    padded: list[Tensor | None] | None = None,
+    padded: Sequence[Tensor | None] | None = None,
 ) -> Tensor:
     """The joint network's unaries on the grid: channels (b, 12, H, W) zero-padded, sizes b
     (h, w) -> (b, 14, gh, gw) unaries_from_logits; log(LOG_EPS) outside each image. Each image

@@ -97,6 +97,7 @@ def max_convolve(
             along_y = sums.amax(dim=2)
             msg = (along_y + lw[:, c0:c1, None, None]).amax(dim=1)
             best = msg if best is None else torch.maximum(best, msg)
+        assert best is not None, "no mixture component"
         out[m0:m1] = best
     return out
 

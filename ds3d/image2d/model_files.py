@@ -14,6 +14,7 @@ import io
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import IO, cast
 
 import torch
 
@@ -129,7 +130,7 @@ def save_forest(forest: Forest, path: Path) -> None:
     """Write a forest gzip-compressed (the tensors shrink ~2.5x, a 16-tree layer from 16 to 6 MB);
     the header's time is fixed so that the same forest always gives the same bytes."""
     with open(path, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as out:
-        torch.save(forest.to_dict(), out)
+        torch.save(forest.to_dict(), cast(IO[bytes], out))  # a GzipFile is a binary file
 
 
 def load_forest(path: Path) -> Forest:
@@ -157,7 +158,8 @@ def load_jointnet(path: Path, shape: JointNetShape) -> JointNet:
     net = JointNet(shape)
     net.load_state_dict(torch.load(path, weights_only=True))
     net = fold_batch_norms(net)
-    net = net.to(memory_format=torch.channels_last)
+    # Module.to takes memory_format (as documented); torch's overloads of it leave it out.
+    net = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     return net.to(torch.bfloat16) if CPU_BFLOAT16 else net
 
 

@@ -370,7 +370,12 @@ class RootScores:
         self.beliefs = beliefs = self.unaries.clone()
         # Each level's limb mixtures, used by the upward pass and again by the back-tracking.
         self.mixture = {
-            level: tuple(_per_map(t, level, b) for t in (mean, var, log_gamma)) for level in LEVELS
+            level: (
+                _per_map(mean, level, b),
+                _per_map(var, level, b),
+                _per_map(log_gamma, level, b),
+            )
+            for level in LEVELS
         }
         for level in reversed(LEVELS):
             messages = max_convolve(

@@ -134,7 +134,7 @@ def propose(
         if min(resized.shape[:2]) < 2 * STRIDE * pool:
             continue  # the level's image is smaller than a few PSM cells
         logits = padded_logits(net, lab_channels(torch.from_numpy(resized)[None]))
-        grid = logits_to_grid(logits, *resized.shape[:2], STRIDE)
+        grid = logits_to_grid(logits, resized.shape[0], resized.shape[1], STRIDE)
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's are -inf: no root or joint can score there.
         rows, cols = grid.shape[-2:]

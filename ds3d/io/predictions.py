@@ -45,7 +45,9 @@ class Prediction:
 
     @property
     def image(self) -> np.ndarray:
-        return self.frame.image
+        image = self.frame.image
+        assert image is not None, "a prediction is made of a frame that was read"
+        return image
 
     def to_dict(self) -> dict:
         """JSON-ready: source, frame index, image size and every person (Person.to_json)."""
@@ -86,6 +88,7 @@ def _readable(stream: Iterator[Frame], bbox, search: SearchParams, on_skip) -> I
     the others handed to on_skip."""
     for frame in stream:
         if frame.error is None:
+            assert frame.image is not None, "a frame without an error was read"
             height, width = frame.image.shape[:2]
             try:
                 if bbox is None:

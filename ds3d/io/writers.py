@@ -73,7 +73,9 @@ class RunWriter:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.lines = open(self.folder / "predictions.jsonl", "w")  # closed by close()
         self.json_files, self.overlay = json_files, overlay
-        self.coco = {"images": [], "annotations": []} if coco else None
+        self.coco: dict[str, list[dict]] | None = (
+            {"images": [], "annotations": []} if coco else None
+        )
         self.count = 0
         self.stride = stride  # of the videos' frames: the overlay MP4 plays at fps / stride
         self.video: _VideoOutputs | None = None
@@ -96,7 +98,7 @@ class RunWriter:
             (self.folder / "json").mkdir(exist_ok=True)
             (self.folder / "json" / f"{name}.json").write_text(json.dumps(record, indent=1))
         if self.coco is not None:
-            self._add_coco(prediction, name)
+            self._add_coco(self.coco, prediction, name)
         is_video = prediction.frame.index is not None
         if self.video is not None and (not is_video or self.video.source != prediction.source):
             self.video.close()
@@ -110,10 +112,10 @@ class RunWriter:
             picture = prediction.plot(with_3d=False)
             cv2.imwrite(str(self.folder / "overlay" / f"{name}.jpg"), picture[..., ::-1])
 
-    def _add_coco(self, prediction: Prediction, name: str) -> None:
+    def _add_coco(self, coco: dict[str, list[dict]], prediction: Prediction, name: str) -> None:
         image_id = self.count
         height, width = prediction.image.shape[:2]
-        self.coco["images"].append(
+        coco["images"].append(
             {
                 "id": image_id,
                 "file_name": prediction.source,
@@ -125,9 +127,9 @@ class RunWriter:
         for person in prediction.people:
             keypoints, scores = coco_keypoints(person.joints_2d, person.confidence)
             x0, y0, x1, y1 = (float(v) for v in person.box)
-            self.coco["annotations"].append(
+            coco["annotations"].append(
                 {
-                    "id": len(self.coco["annotations"]) + 1,
+                    "id": len(coco["annotations"]) + 1,
                     "image_id": image_id,
                     "category_id": 1,
                     "keypoints": keypoints,
@@ -169,12 +171,17 @@ class _VideoOutputs:
         stem = Path(first.source.split("?")[0]).stem or "video"
         self.base = folder / stem.replace(":", "")
         self.fps = first.fps or 25.0
-        self.frames, self.joints_3d, self.joints_2d, self.scores = [], [], [], []
-        self.writer = None
+        self.frames: list[int] = []
+        self.joints_3d: list[np.ndarray] = []
+        self.joints_2d: list[np.ndarray] = []
+        self.scores: list[float] = []
+        self.writer: cv2.VideoWriter | None = None
         self.overlay, self.stride = overlay, stride
 
     def add(self, prediction: Prediction) -> None:
-        self.frames.append(prediction.frame.index)
+        index = prediction.frame.index
+        assert index is not None, "a video's frames are numbered"
+        self.frames.append(index)
         if prediction.people:  # the best person; NaN for a frame with nobody
             best = prediction.people[0]
             self.joints_3d.append(best.joints_3d)
@@ -190,7 +197,7 @@ class _VideoOutputs:
                 size = (picture.shape[1], picture.shape[0])
                 path = f"{self.base}_overlay.mp4"
                 self.writer = cv2.VideoWriter(
-                    path, cv2.VideoWriter_fourcc(*"mp4v"), self.fps / self.stride, size
+                    path, cv2.VideoWriter.fourcc(*"mp4v"), self.fps / self.stride, size
                 )
             self.writer.write(np.ascontiguousarray(picture))
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from ds3d.image2d.jointnet import JointNetShape
 
@@ -34,9 +35,13 @@ class TrainConfig:
     psm_iterations: int = 50
 
     def jointnet_shape(self) -> JointNetShape:
-        return JointNetShape(tuple(self.jointnet_widths), tuple(self.jointnet_blocks))
+        (w0, w1, w2), (b0, b1, b2) = self.jointnet_widths, self.jointnet_blocks
+        return JointNetShape((w0, w1, w2), (b0, b1, b2))
 
     @classmethod
     def from_saved(cls, saved: dict) -> TrainConfig:
         """A configuration as a manifest saved it (JSON: tuples came back as lists)."""
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+        fields: dict[str, Any] = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()
+        }
+        return cls(**fields)

@@ -15,6 +15,7 @@ import logging
 import multiprocessing
 import shutil
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from functools import partial
@@ -89,6 +90,7 @@ def train(
     # on one thread (scikit-learn grows a tree on one core), so that it is the same whatever
     # --threads says. The joint network settles left and right itself
     # (ds3d.image2d.left_right); the facing CNN serves models without one.
+    fit: Callable[[PoseAnnotations, EstimatorParams, TrainConfig], tuple[dict, float]]
     if cfg.jointnet_epochs:
         name, fit = "jointnet", partial(fit_jointnet, checkpoint=checkpoint / "jointnet.pt")
     else:

@@ -117,7 +117,8 @@ def train_jointnet(
     ends with the network an uninterrupted run would have (on as many threads).
     """
     torch.manual_seed(seed * 1000 + 11)
-    net = JointNet(shape).to(memory_format=torch.channels_last)
+    # Module.to takes memory_format (as documented); torch's overloads of it leave it out.
+    net = JointNet(shape).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
     steps = epochs * -(-len(windows) // BATCH)
     schedule = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps)
@@ -175,7 +176,9 @@ def _resume(path: Path, run: dict, net, opt, schedule) -> tuple[int, float]:
     return state["epoch"], state["seconds"]
 
 
-def jointnet_windows(ann: PoseAnnotations, params: EstimatorParams) -> tuple[Tensor, ...]:
+def jointnet_windows(
+    ann: PoseAnnotations, params: EstimatorParams
+) -> tuple[Tensor, Tensor, Tensor]:
     """The joint network's training data (below): per image, a window of
     WINDOW x WINDOW px of Lab / 100 at the working scale, centred on the box around its located
     joints; the joints in window px; which are located. Returns ((N, 3, WINDOW, WINDOW) float16,

@@ -4,6 +4,7 @@ ds3d.image2d.forest traverses (the layout: that module's docstring)."""
 from __future__ import annotations
 
 from collections import deque
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,23 +33,23 @@ def export_tree(model: DecisionTreeClassifier, pool: ComparisonPool, n_classes: 
     onto all n_classes columns.
     """
     tree = model.tree_
-    order = [0]  # breadth-first, pushing both children of a split together
+    visited = [0]  # breadth-first, pushing both children of a split together
     new_id = {0: 0}
     queue = deque([0])
     while queue:
         node = queue.popleft()
         if tree.children_left[node] >= 0:
             for child in (tree.children_left[node], tree.children_right[node]):
-                new_id[child] = len(order)
-                order.append(child)
+                new_id[child] = len(visited)
+                visited.append(child)
                 queue.append(child)
-    order = np.asarray(order)
+    order = np.asarray(visited)
     n = len(order)
     is_leaf = tree.children_left[order] < 0
     feat = np.where(is_leaf, 0, tree.feature[order])
     if np.abs(np.concatenate([pool.offset1, pool.offset2])).max() > 127 or pool.channel.max() > 255:
         raise ValueError("offsets must fit int8 and channels uint8")
-    out = {
+    out: dict[str, Any] = {  # arrays, and the depth
         "channel": np.where(is_leaf, 0, pool.channel[feat]).astype(np.uint8),
         "dy1": np.where(is_leaf, 0, pool.offset1[feat, 0]).astype(np.int8),
         "dx1": np.where(is_leaf, 0, pool.offset1[feat, 1]).astype(np.int8),

@@ -19,7 +19,8 @@ from ds3d.viz import overlay
 
 def limb_colour(child: int) -> tuple[float, float, float]:
     """ds3d.viz.overlay's colour of the limb ending at `child`, as matplotlib takes it."""
-    return tuple(c / 255 for c in overlay.limb_colour(child))
+    red, green, blue = overlay.limb_colour(child)
+    return red / 255, green / 255, blue / 255
 
 
 def draw_2d(ax, image: np.ndarray, joints_2d: np.ndarray, initial: np.ndarray | None = None):
