@@ -54,6 +54,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 # Known vulnerabilities of the installed dependencies; the last result is kept in docs/security/.
 audit: $(STAMP)
