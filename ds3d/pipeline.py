@@ -262,7 +262,8 @@ class Pipeline:
         )
         # One frame for every iteration: the warm-started projections stay in its coordinates.
         first = lifter.query(est.joints_2d.to(dev), None, intrinsics)
-        query, best = first, None  # best: per person, the state with the best posterior so far
+        query = first
+        best: _State | None = None  # per person, the state with the best posterior so far
         start = None  # every set's projections of the iteration before, for a warm start
         history, energies = [], []
         for _ in range(cfg.iterations):
@@ -272,7 +273,7 @@ class Pipeline:
             query = query.moved_to(best.joints_2d)
             history.append(best.joints_2d)
             energies.append(-best.score)
-
+        assert best is not None  # cfg.iterations >= 1 (PipelineConfig)
         with stage_timer(timings, "pose_fit", dev):
             chosen = lifter.problems(query, best.joint_set)
             pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, chosen)

@@ -90,6 +90,13 @@ def _groups(keys: Sequence[tuple[bool, ...]]) -> dict[tuple[bool, ...], list[int
     return groups
 
 
+def _stacked_intrinsics(intrinsics: list[np.ndarray | None]) -> np.ndarray | None:
+    """The intrinsics of a group of items (_groups: all of them have one, or none), (B, 3, 3)
+    or None."""
+    given = [k for k in intrinsics if k is not None]
+    return np.stack(given) if given else None
+
+
 def load_pipeline(model_dir: Path | None, device: str) -> tuple[Pipeline | None, str | None]:
     """The image -> 2D + 3D Pipeline of model_dir, or (None, why) when it has no 2D stage."""
     try:
@@ -132,10 +139,10 @@ class Engine:
     def lift_batch(self, items: Sequence[LiftInput]) -> list[LiftOutput]:
         """3D poses of B 2D poses; raises ds3d.errors.InvalidPose when the library refuses one."""
         out: list[LiftOutput | None] = [None] * len(items)
-        for (has_k,), idx in _groups([(it.intrinsics is not None,) for it in items]).items():
+        for idx in _groups([(it.intrinsics is not None,) for it in items]).values():
             joints = np.stack([items[i].joints_2d for i in idx])
             visible = np.stack([items[i].visible for i in idx])
-            intrinsics = np.stack([items[i].intrinsics for i in idx]) if has_k else None
+            intrinsics = _stacked_intrinsics([items[i].intrinsics for i in idx])
             res = self.lifter.lift(joints, visible=visible, intrinsics=intrinsics)
             info = self._batch_info(len(idx), res.timings_ms)
             joints_3d, bones = _numpy(res.joints_3d), _numpy(res.bone_lengths)
@@ -152,7 +159,8 @@ class Engine:
         if item.intrinsics is not None:
             intrinsics_batch(item.intrinsics, 1)
         if item.bbox is None and self.pipeline is not None:
-            check_searchable(*item.image.shape[:2], self.pipeline.config.search)
+            height, width = item.image.shape[:2]
+            check_searchable(height, width, self.pipeline.config.search)
 
     def check_lift_input(self, item: LiftInput) -> None:
         """The library's own checks of a 2D pose, made before it is queued (InvalidPose)."""
@@ -167,12 +175,12 @@ class Engine:
         if self.pipeline is None:
             raise RuntimeError(self.pose_unavailable)
         out: list[PoseOutput | None] = [None] * len(items)
-        for (has_k,), idx in _groups([(it.intrinsics is not None,) for it in items]).items():
+        for idx in _groups([(it.intrinsics is not None,) for it in items]).values():
             boxes = [items[i].bbox for i in idx]
             res = self.pipeline.estimate(
                 [items[i].image for i in idx],
                 bboxes=None if all(b is None for b in boxes) else boxes,
-                intrinsics=np.stack([items[i].intrinsics for i in idx]) if has_k else None,
+                intrinsics=_stacked_intrinsics([items[i].intrinsics for i in idx]),
                 people=[items[i].people for i in idx],
                 min_score=[items[i].min_score for i in idx],
             )

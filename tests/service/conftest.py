@@ -3,17 +3,14 @@ runs an app around them under a real uvicorn on a free port of 127.0.0.1 (in a t
 
 from __future__ import annotations
 
-import json
 import socket
 import threading
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import pytest
 import uvicorn
 
-from ds3d.data.lsp import load_lsp
 from ds3d.util.paths import MODELS_DIR
 from service.app import create_app
 from service.engine import Engine
@@ -67,17 +64,3 @@ def pose_engine(model_dir):
     engine = Engine.load(model_dir, "cpu")
     assert engine.pipeline is not None, engine.pose_unavailable
     return engine
-
-
-@pytest.fixture
-def load_inputs(data_dir, tmp_path) -> tuple[Path, Path]:
-    """(poses file, images folder) for the load tools (soak, crash test): 64 LSP test poses in
-    `ds3d lift`'s input format and 8 LSP test images."""
-    lsp = load_lsp(split="test")
-    poses = tmp_path / "poses.json"
-    poses.write_text(json.dumps({"joints_2d": lsp.joints[:64].tolist()}))
-    images = tmp_path / "images"
-    images.mkdir()
-    for path in lsp.image_paths[:8]:
-        (images / path.name).write_bytes(path.read_bytes())
-    return poses, images
