@@ -15,11 +15,16 @@ import sys
 from pydantic import ValidationError
 from pydantic_settings import CliSettingsSource
 
+from ds3d.util.memory import map_large_buffers
 from service.access.keys import InvalidKeys
 from service.allocator import run_under_jemalloc
 from service.settings import Settings
 
 ONEDNN_CACHE_ENTRIES = 4
+# Under glibc's malloc, buffers from this size on get their own mappings, given back when freed:
+# the 2D stage's buffers vary with the images and the batches, and glibc's arenas kept the free
+# memory around them (docs/service-results.md, memory; jemalloc needs no such bound).
+GLIBC_MMAP_THRESHOLD = 2**20
 
 
 def parse_settings(argv: list[str] | None = None) -> Settings:
@@ -69,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     # meets new sizes, and that rarely hits (`ds3d bench memory` over 360 LSP images with glibc:
     # +15.5 % RSS with the default, +8.4 % with 16 entries, +6.0 % with 4, at the same speed).
     os.environ.setdefault("ONEDNN_PRIMITIVE_CACHE_CAPACITY", str(ONEDNN_CACHE_ENTRIES))
+    map_large_buffers(GLIBC_MMAP_THRESHOLD)
 
     import uvicorn
 

@@ -40,6 +40,21 @@ def malloc_trim() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
+# mallopt's parameter for the size from which an allocation gets its own mapping (malloc.h).
+_M_MMAP_THRESHOLD = -3
+
+
+def map_large_buffers(threshold_bytes: int) -> bool:
+    """Under glibc's malloc, give every allocation of at least `threshold_bytes` its own mapping,
+    returned to the system when it is freed. By default glibc raises that threshold to the
+    largest buffer freed so far (up to 32 MB), after which buffers of every size come from its
+    arenas, which keep the free memory around them. Returns whether it applied (False under
+    another allocator)."""
+    if loaded_allocator() != "glibc":
+        return False
+    return bool(ctypes.CDLL("libc.so.6").mallopt(_M_MMAP_THRESHOLD, threshold_bytes))
+
+
 class _MallInfo2(ctypes.Structure):
     _fields_ = [
         (name, ctypes.c_size_t)
