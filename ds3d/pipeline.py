@@ -41,6 +41,7 @@ from ds3d.boxes import checked_box, person_boxes, suppress
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
 from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
 from ds3d.image2d.search import Proposals, SearchParams, person_probability
 from ds3d.lifter import Lifter, LifterConfig, Problems, Query
@@ -83,12 +84,15 @@ class Candidate:
     """A region of an image that goes through the 2D stage as its own crop: the image (an index
     into the batch), a person box (x0, y0, x1, y1) px, whether the box was given (its person is
     answered whatever its score), and whether its scale is known (a search proposal's, found at
-    its level) or left to the 2D stage's pyramid."""
+    its level) or left to the 2D stage's pyramid; views: the joint network's maps of the image
+    that the search computed (Proposals.levels), off which the 2D stage reads the maps that
+    choose the crop's scale."""
 
     image: int
     box: np.ndarray
     given: bool
     scale_known: bool
+    views: Sequence[ScaledLogits] = ()
 
 
 def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Tensor:
@@ -189,7 +193,7 @@ class Pipeline:
         for i, found in zip(searched, proposals, strict=True):
             whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
             out += [Candidate(i, box, False, True) for box in self._proposal_boxes(found)]
-            out.append(Candidate(i, whole, False, False))
+            out.append(Candidate(i, whole, False, False, found.levels))
         return out
 
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
@@ -213,6 +217,7 @@ class Pipeline:
                     [images[candidates[k].image] for k in rows],
                     [candidates[k].box for k in rows],
                     scales=[1.0] if scale_known else None,
+                    views=[candidates[k].views for k in rows],
                 )
                 parts.append((torch.tensor(rows), part))
         estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(candidates))

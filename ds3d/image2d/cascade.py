@@ -10,6 +10,7 @@ Unaries are log(box-blurred probabilities of the last layer).
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -99,13 +100,16 @@ def cascade_probs(
     params: EstimatorParams,
     sizes: list[tuple[int, int]] | None = None,
     mixtures: PairwiseMixtures | None = None,
+    cells: torch.Tensor | None = None,
 ) -> list[torch.Tensor]:
     """Run the forest cascade on a batch.
 
     channels: (B, 12, H, W) from image_channels, zero outside each image;
     sizes: None (every image fills H x W) or B (h, w) sizes of the images in a zero-padded
     batch: context maps are zeroed outside each image, as around a single image in training;
-    mixtures: the PSM's, for layer_context with context_pose_sigma
+    mixtures: the PSM's, for layer_context with context_pose_sigma;
+    cells: None (every cell) or (B, gh, gw) bool, the cells where the forests run (others read
+    as zero, like the cells outside an image)
     -> one (B, 15, gh, gw) class-probability map per layer (joints 0-13, background 14), on the
     grid of grid_positions(H, W, stride).
     """
@@ -114,6 +118,9 @@ def cascade_probs(
     # In a padded batch, cells outside an image are zeroed: as around a single image.
     inside = None if sizes is None else valid_cells(sizes, h, w, params.stride)
     inside_px = None if sizes is None else valid_cells(sizes, h, w, 1)
+    index = None
+    if cells is not None:
+        positions, index = cell_positions(cells, params.stride)
     outputs: list[torch.Tensor] = []
     stack = channels
     for i, forest in enumerate(layers):
@@ -124,9 +131,42 @@ def cascade_probs(
                 ctx = ctx * inside_px
             stack = torch.cat([channels, ctx], dim=1)
         probs = predict_proba(forest, pad_channels(stack, forest.radius), positions)
-        probs = probs.permute(0, 2, 1).reshape(b, -1, gh, gw)
+        probs = probs.permute(0, 2, 1)  # (B, 15, P)
+        if index is not None:
+            probs = probs.new_zeros(b, probs.shape[1], gh * gw).scatter_(
+                2, index[:, None].expand_as(probs), probs
+            )
+        probs = probs.reshape(b, -1, gh, gw)
         outputs.append(probs if inside is None else probs * inside)
     return outputs
+
+
+def cell_positions(cells: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pixels of the chosen cells of each image: cells (B, gh, gw) bool on the grid of
+    grid_positions(., ., stride) -> (positions (B, P, 2) int64 (y, x) px, index (B, P) int64
+    their row-major cells), P the size bucket (ds3d.image2d.buckets) of the most cells any
+    image chose (at least 1), so that the traversal's buffers come in a few sizes; an image with
+    fewer repeats its first (cell 0 where it chose none), which computes and writes the same
+    value again."""
+    b, gw = len(cells), cells.shape[2]
+    chosen = cells.reshape(b, -1)
+    counts = chosen.sum(1)
+    n = min(bucket(max(int(counts.max()), 1)), chosen.shape[1])
+    order = torch.argsort((~chosen).to(torch.uint8), dim=1, stable=True)[:, :n]  # chosen first
+    index = torch.where(torch.arange(n)[None] < counts[:, None], order, order[:, :1])
+    return torch.stack((index // gw * stride, index % gw * stride), -1), index
+
+
+def forest_cells(net_unaries: torch.Tensor, reach: float) -> torch.Tensor:
+    """Where the forests are worth running: the cells where some joint is at least exp(-reach)
+    times as likely as at its best cell, by the joint network's unaries (b, 14, gh, gw), log(P +
+    LOG_EPS) -> (b, gh, gw) bool. The ratio is of the probabilities above the floor: with it,
+    every cell of a broad map would lie within log(peak / LOG_EPS) nats of the best. Elsewhere
+    the network already rules every joint out, and the forests' unaries are added to its
+    (settle_left_right): what they would say there cannot bring a joint back."""
+    probs = (net_unaries.exp() - LOG_EPS).clamp_min(0)
+    best = probs.flatten(2).amax(-1)[..., None, None]
+    return (probs >= best * math.exp(-reach)).any(1)
 
 
 def valid_cells(sizes: list[tuple[int, int]], height: int, width: int, stride: int) -> torch.Tensor:
@@ -144,55 +184,53 @@ def unaries_from_probs(probs: torch.Tensor, blur: int) -> torch.Tensor:
     return torch.log(box_mean(probs[:, :NUM_JOINTS], blur) + LOG_EPS)
 
 
-def group_unaries(
-    images: list[np.ndarray],
-    rows: list[int],
-    layers: list[Forest],
-    mixtures: PairwiseMixtures,
-    p: EstimatorParams,
-    timings: dict[str, float],
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The cascade's unaries of the images[rows] (H_i, W_i, 3) uint8, zero-padded into one batch;
-    with `p.flip_test`, the last layer's probabilities are averaged with those of each image's
-    mirror (mirror_on_grid), mapped back.
-
-    Returns (rows (b,) long, channels (b, 12, H, W) float32, unaries (b, 14, gh, gw) float32
-    log-probabilities on the grid of grid_positions(H, W, p.stride), log(LOG_EPS) outside each
-    image), H x W as group_probs pads them; adds the seconds of the features and of
-    the traversal to timings."""
-    group = [images[i] for i in rows]
-    sizes = [image.shape[:2] for image in group]
-    channels, probs = group_probs(group, layers, mixtures, p, timings)
-    if p.flip_test:
-        mirrors = [mirror_on_grid(image, p.stride) for image in group]
-        mirrored = group_probs(mirrors, layers, mixtures, p, timings)[1]
-        probs = (probs + unmirror(mirrored, sizes, p.stride, probs.shape)) / 2
-    unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
-    valid = valid_cells(sizes, channels.shape[2], channels.shape[3], p.stride)  # (b, 1, gh, gw)
-    unaries = torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
-    return torch.tensor(rows), channels, unaries
-
-
-def group_probs(
-    group: list[np.ndarray],
-    layers: list[Forest],
-    mixtures: PairwiseMixtures,
-    p: EstimatorParams,
-    timings: dict[str, float],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Images (H_i, W_i, 3) uint8 zero-padded into one batch -> their channels (b, 12, H, W),
-    H x W the buckets of their largest height and width (ds3d.image2d.buckets), and the last
-    layer's probabilities (b, 15, gh, gw) (mixtures: the PSM's, for
-    layer_context); adds the seconds of the features and of the traversal to timings."""
+def group_channels(
+    group: list[np.ndarray], timings: dict[str, float]
+) -> tuple[torch.Tensor, list[tuple[int, int]]]:
+    """Images (H_i, W_i, 3) uint8 zero-padded into one batch of channels (b, 12, H, W), H x W
+    the buckets of their largest height and width (ds3d.image2d.buckets); returns them and the
+    images' (h, w) sizes, and adds its seconds to timings["features"]."""
     t0 = time.perf_counter()
     sizes = [image.shape[:2] for image in group]
     height, width = (bucket(max(side)) for side in zip(*sizes, strict=True))
     channels = batch_channels(group, height, width)
-    t1 = time.perf_counter()
-    probs = cascade_probs(layers, channels, p, sizes, mixtures)[-1]
-    timings["features"] += t1 - t0
-    timings["traversal"] += time.perf_counter() - t1
-    return channels, probs
+    timings["features"] += time.perf_counter() - t0
+    return channels, sizes
+
+
+def group_unaries(
+    group: list[np.ndarray],
+    channels: torch.Tensor,
+    layers: list[Forest],
+    mixtures: PairwiseMixtures,
+    p: EstimatorParams,
+    timings: dict[str, float],
+    cells: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The cascade's unaries of images (H_i, W_i, 3) uint8 from their group_channels; with
+    `p.flip_test`, the last layer's probabilities are averaged with those of each image's
+    mirror (mirror_on_grid), mapped back. mixtures: the PSM's, for layer_context; cells: as
+    cascade_probs (the same cells of the mirrors are read).
+
+    Returns (b, 14, gh, gw) float32 log-probabilities on the grid of grid_positions(H, W,
+    p.stride), log(LOG_EPS) outside each image; adds the seconds of the features and of the
+    traversal to timings."""
+    sizes = [image.shape[:2] for image in group]
+    t0 = time.perf_counter()
+    probs = cascade_probs(layers, channels, p, sizes, mixtures, cells)[-1]
+    timings["traversal"] += time.perf_counter() - t0
+    if p.flip_test:
+        mirror_channels, _ = group_channels([mirror_on_grid(im, p.stride) for im in group], timings)
+        if cells is not None:
+            grid = grid_positions(*mirror_channels.shape[-2:], p.stride)[1:]
+            cells = flip_columns(cells[:, None], sizes, p.stride, (len(group), 1, *grid))[:, 0]
+        t0 = time.perf_counter()
+        mirrored = cascade_probs(layers, mirror_channels, p, sizes, mixtures, cells)[-1]
+        timings["traversal"] += time.perf_counter() - t0
+        probs = (probs + unmirror(mirrored, sizes, p.stride, probs.shape)) / 2
+    unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
+    valid = valid_cells(sizes, channels.shape[2], channels.shape[3], p.stride)  # (b, 1, gh, gw)
+    return torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
 
 
 def mirror_on_grid(image: np.ndarray, stride: int) -> np.ndarray:
@@ -208,11 +246,19 @@ def unmirror(
     """Class probabilities (b, 15, gh', gw') of the images' mirror_on_grid -> on the images' own
     grids (b, 15, gh, gw) = shape: columns reversed, left and right swapped (background kept),
     zero outside each image; sizes: the b images' (h, w)."""
-    out = torch.zeros(shape)
-    classes = [*FLIP, NUM_JOINTS]
+    return flip_columns(probs[:, [*FLIP, NUM_JOINTS]], sizes, stride, shape)
+
+
+def flip_columns(
+    maps: torch.Tensor, sizes: list[tuple[int, int]], stride: int, shape: tuple[int, ...]
+) -> torch.Tensor:
+    """Maps (b, C, gh', gw') on the grids of b images (h, w) = sizes -> (b, C, gh, gw) = shape,
+    each image's cells with their columns reversed: from an image's grid to its mirror_on_grid's
+    and back. Zero outside each image."""
+    out = maps.new_zeros(shape)
     for k, (h, w) in enumerate(sizes):
         gh, gw = -(-h // stride), -(-w // stride)
-        out[k, :, :gh, :gw] = probs[k, classes, :gh, :gw].flip(-1)
+        out[k, :, :gh, :gw] = maps[k, :, :gh, :gw].flip(-1)
     return out
 
 

@@ -3,6 +3,7 @@ image, and the base scale that brings a person filling it to the canonical exten
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -10,6 +11,7 @@ import numpy as np
 
 from ds3d.boxes import checked_box
 from ds3d.errors import InvalidImage
+from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.params import EstimatorParams
 
 
@@ -27,12 +29,14 @@ def resize_image(image: np.ndarray, scale: float) -> np.ndarray:
 @dataclass
 class Crop:
     """Where one image's working region comes from: its top-left corner (x0, y0) in image px
-    and the base scale (working px per image px)."""
+    and the base scale (working px per image px); views: the joint network's maps of the whole
+    image at some scales where the search computed them (jointnet.read_logits)."""
 
     image: np.ndarray
     x0: int
     y0: int
     base: float
+    views: Sequence[ScaledLogits] = ()
 
 
 def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[Crop]:

@@ -22,6 +22,7 @@ joint, ds3d.training.jointnet).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -42,6 +43,9 @@ STRIDE = 4  # input px per output cell
 # bfloat16 autocast on CPUs whose oneDNN computes it (AVX-512 and newer): twice float32's speed
 # on this project's machines; elsewhere it would be emulated, slower than float32.
 CPU_BFLOAT16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+# A person looks alike to the network from 1 / ZOOM_REACH to ZOOM_REACH times its canonical
+# extent: the zoom it was trained with (ds3d.training.jointnet.ZOOM).
+ZOOM_REACH = 1.3
 MARGIN = 16  # px of zeros around an image at inference (logits_on_grid); a multiple of STRIDE
 
 
@@ -166,6 +170,56 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
         logits = net(padded)[..., : -(-padded_h // STRIDE), : -(-padded_w // STRIDE)]
         # back on the CPU, where the cascade and the PSM read it
         return logits.float().cpu().contiguous()
+
+
+@dataclass(frozen=True)
+class ScaledLogits:
+    """padded_logits (1, 14, h, w) of an image resized by `scale` (resized px per image px,
+    (x, y)): the search's levels, off which the 2D stage reads its crops' maps (read_logits)."""
+
+    logits: Tensor
+    scale: tuple[float, float]
+
+
+def read_logits(
+    views: Sequence[ScaledLogits],
+    scale: tuple[float, float],
+    offset: tuple[float, float],
+    height: int,
+    width: int,
+) -> Tensor | None:
+    """The padded_logits of a (height, width) image whose px (x, y) lies at image px
+    (x + 0.5) / scale - 0.5 + offset (a crop at offset, resized by scale), read off the view
+    of the image nearest its scale (resampled_logits); None where none is within the zoom the
+    network was trained with (ZOOM_REACH)."""
+    nearest = min(views, key=lambda v: abs(math.log(v.scale[0] / scale[0])), default=None)
+    if nearest is None or abs(math.log(nearest.scale[0] / scale[0])) > math.log(ZOOM_REACH):
+        return None
+    ratio = (nearest.scale[0] / scale[0], nearest.scale[1] / scale[1])
+    shift = tuple(
+        (0.5 / f + o) * v - 0.5 for f, o, v in zip(scale, offset, nearest.scale, strict=True)
+    )
+    return resampled_logits(nearest.logits, ratio, (shift[0], shift[1]), height, width)
+
+
+def resampled_logits(
+    source: Tensor, scale: tuple[float, float], offset: tuple[float, float], height: int, width: int
+) -> Tensor:
+    """What padded_logits would be for a (height, width) image, read bilinearly off `source`,
+    the padded_logits (1, 14, h', w') of another view of the same scene in which this image's
+    px (x, y) lies at px scale * (x, y) + offset (past its last cell, the last) -> (1, 14,
+    ceil((height + 2 MARGIN) / STRIDE), ceil((width + 2 MARGIN) / STRIDE)). The network sees a
+    person alike within the zoom it was trained with (about 0.7 to 1.3), so one view's maps
+    serve another's scale in that range."""
+    oh, ow = source.shape[-2:]
+    axes = []
+    for size, cells, k in ((width, ow, 0), (height, oh, 1)):
+        px = torch.arange(-(-(size + 2 * MARGIN) // STRIDE), dtype=torch.float32) * STRIDE - MARGIN
+        cell = (scale[k] * px + offset[k] + MARGIN) / STRIDE  # source cells
+        axes.append(cell / max(cells - 1, 1) * 2 - 1)
+    xs, ys = axes
+    grid = torch.stack([xs[None, :].expand(len(ys), -1), ys[:, None].expand(-1, len(xs))], -1)[None]
+    return F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
 
 
 def logits_to_grid(

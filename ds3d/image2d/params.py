@@ -65,6 +65,10 @@ class InferenceParams:
     # Weight of the joint network's unaries (ds3d.image2d.jointnet) against the forests' in the
     # final pass of a model that has one (0: the forests alone, as without one).
     jointnet_weight: float = 1.5
+    # The forests run only on the cells within this many nats of some joint's best cell in the
+    # joint network's unaries (cascade.forest_cells; None: on every cell). Without the network
+    # (or with jointnet_weight 0) they run everywhere.
+    forest_reach: float | None = 6.0
 
     def __post_init__(self):
         if self.scale_choice not in SCALE_CHOICES:

@@ -28,7 +28,13 @@ from ds3d.errors import InvalidImage
 from ds3d.image2d.buckets import bucket
 from ds3d.image2d.crops import resize_image
 from ds3d.image2d.features import lab_channels
-from ds3d.image2d.jointnet import STRIDE, JointNet, logits_to_grid, padded_logits
+from ds3d.image2d.jointnet import (
+    STRIDE,
+    JointNet,
+    ScaledLogits,
+    logits_to_grid,
+    padded_logits,
+)
 from ds3d.image2d.psm import PairwiseMixtures, RootScores
 
 # The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
@@ -43,6 +49,12 @@ class SearchParams:
 
     min_height, max_height: the people sought, person extent (the longer side of the joints'
         box) as a fraction of the image height.
+    min_extent_px: nor any smaller than this many px of the image. The 2D stage sees a person
+        at canonical_extent (100 px): a smaller one is upscaled, blurred, and the search's
+        pyramid grows with the square of that upscale; in a small image (LSP's are 170 px
+        tall) min_height alone asked for 26 px people, a level 2.7 times the image's size
+        that cost most of the search. 64 px is below the smallest person of the people
+        protocol (15 % of 480 px), so it changes nothing there.
     level_ratio: the person extent of one pyramid level over the previous one's.
     psm_stride: px of the working scale per PSM cell (the network's maps max-pooled to it).
     peak_radius: cells; a root score is a proposal where it is the maximum within the radius.
@@ -59,6 +71,7 @@ class SearchParams:
 
     min_height: float = 0.15
     max_height: float = 1.2
+    min_extent_px: float = 64.0
     level_ratio: float = 1 / 0.6
     psm_stride: int = 8
     peak_radius: int = 3
@@ -74,10 +87,13 @@ class SearchParams:
 @dataclass
 class Proposals:
     """People proposed in one image, best first: poses (N, 14, 2) px of the image, scores (N,)
-    the PSM root scores on the network's logits (higher = surer, not a probability)."""
+    the PSM root scores on the network's logits (higher = surer, not a probability); levels:
+    the network's maps of every level searched, which the 2D stage reads its crops' maps off
+    rather than running the network again."""
 
     poses: np.ndarray
     scores: np.ndarray
+    levels: list[ScaledLogits]
 
 
 def check_searchable(height: int, width: int, params: SearchParams) -> None:
@@ -94,13 +110,16 @@ def check_searchable(height: int, width: int, params: SearchParams) -> None:
 
 def level_extents(height: int, params: SearchParams) -> list[float]:
     """Person extents (px of the image), one per pyramid level, smallest first: from the one
-    whose reach starts at min_height * height up to the first whose reach ends past
-    max_height * height."""
+    whose reach starts at the smallest person sought (min_height * height, at least
+    min_extent_px) up to the first whose reach ends past max_height * height; none where
+    that largest person is smaller than the smallest."""
     low, high = LEVEL_REACH
-    first = params.min_height * height / low
-    count = math.ceil(
-        math.log(params.max_height / params.min_height * low / high) / math.log(params.level_ratio)
-    )
+    smallest = max(params.min_height * height, params.min_extent_px)
+    largest = params.max_height * height
+    if largest < smallest:
+        return []
+    first = smallest / low
+    count = math.ceil(math.log(largest / (first * high)) / math.log(params.level_ratio))
     return [first * params.level_ratio**k for k in range(max(count, 0) + 1)]
 
 
@@ -127,13 +146,15 @@ def propose(
     calling thread. canonical_extent: px of a person at the working scale; unary_weight: the
     PSM's weight on its unaries (EstimatorParams)."""
     height, width = image.shape[:2]
-    poses, scores = [], []
+    poses, scores, levels = [], [], []
     pool = max(params.psm_stride // STRIDE, 1)
     for extent in level_extents(height, params):
         resized = resize_image(image, canonical_extent / extent)
         if min(resized.shape[:2]) < 2 * STRIDE * pool:
             continue  # the level's image is smaller than a few PSM cells
         logits = padded_logits(net, lab_channels(torch.from_numpy(resized)[None]))
+        to_level = (resized.shape[1] / width, resized.shape[0] / height)
+        levels.append(ScaledLogits(logits, to_level))
         grid = logits_to_grid(logits, resized.shape[0], resized.shape[1], STRIDE)
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's are -inf: no root or joint can score there.
@@ -146,10 +167,10 @@ def propose(
         poses.append(found.joints_2d[0].numpy() * to_image)
         scores.append(found.score[0].float().numpy())
     if not poses:
-        return Proposals(np.zeros((0, 14, 2), np.float32), np.zeros(0, np.float32))
+        return Proposals(np.zeros((0, 14, 2), np.float32), np.zeros(0, np.float32), levels)
     poses_all, scores_all = np.concatenate(poses), np.concatenate(scores)
     kept = suppress(person_boxes(poses_all), scores_all, params.overlap)
-    return Proposals(poses_all[kept].astype(np.float32), scores_all[kept])
+    return Proposals(poses_all[kept].astype(np.float32), scores_all[kept], levels)
 
 
 def person_probability(psm_score: torch.Tensor, params: SearchParams) -> torch.Tensor:

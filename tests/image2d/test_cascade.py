@@ -14,6 +14,7 @@ from ds3d.image2d.cascade import context_channels, layer_context, traversal_grou
 from ds3d.image2d.features import box_mean
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import fit_pairwise_mixtures
+from ds3d.image2d.result import LOG_EPS
 
 
 def test_context_channels_and_valid_cells_follow_the_grid():
@@ -79,3 +80,42 @@ def test_traversal_groups_partition_the_batch_by_shape_within_the_budget():
         [1],
         [2],
     ]  # one image over the budget: a group of its own
+
+
+def test_forest_cells_are_those_where_some_joint_is_near_its_best():
+    probs = torch.zeros(1, 14, 6, 8)
+    probs[0, 2:, 1, 2] = 1.0  # joints 2-13 sure of one cell
+    probs[0, 0, 1, 2] = 0.5  # joint 0's best; 0.1 is within 3 nats of it (e^-3 = 0.05), 0.02 not
+    probs[0, 0, 4, 6], probs[0, 0, 5, 7] = 0.1, 0.02
+    probs[0, 1] = 1 / 48  # a flat map: every cell is its best
+    cells = cascade.forest_cells(torch.log(probs + LOG_EPS), reach=3.0)
+    assert cells.all()
+    probs[0, 1] = 0.0
+    probs[0, 1, 0, 0] = 1e-3  # a map next to nothing: its best cell still counts
+    cells = cascade.forest_cells(torch.log(probs + LOG_EPS), reach=3.0)
+    assert sorted(map(tuple, cells[0].nonzero().tolist())) == [(0, 0), (1, 2), (4, 6)]
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_the_forests_run_on_the_chosen_cells_alone(small_model):
+    from ds3d.image2d.estimator import PoseEstimator2D
+
+    est = PoseEstimator2D.load(small_model)
+    rng = np.random.default_rng(5)
+    images = [rng.integers(0, 256, shape, dtype=np.uint8) for shape in ((120, 90, 3), (96, 60, 3))]
+    channels, sizes = cascade.group_channels(images, {"features": 0.0})
+    dense = cascade.cascade_probs(est.layers, channels, est.params, sizes)
+    gh, gw = dense[0].shape[-2:]
+    every = torch.ones(2, gh, gw, dtype=torch.bool)
+    everywhere = cascade.cascade_probs(est.layers, channels, est.params, sizes, cells=every)
+    for a, b in zip(dense, everywhere, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    cells = torch.zeros(2, gh, gw, dtype=torch.bool)
+    cells[0, 5:15, 3:12] = True  # the second image chose none
+    first, last = cascade.cascade_probs(est.layers, channels, est.params, sizes, cells=cells)
+    # The first layer reads the image alone: on the chosen cells it finds what it finds on all.
+    torch.testing.assert_close(first[0][:, cells[0]], dense[0][0][:, cells[0]], rtol=0, atol=0)
+    assert not first[0][:, ~cells[0]].any() and not last[0][:, ~cells[0]].any()
+    # The later layer reads its context from the chosen cells alone: it differs somewhere.
+    assert not torch.equal(last[0][:, cells[0]], dense[1][0][:, cells[0]])
+    assert last[1].count_nonzero() <= 15  # at most its one stand-in cell

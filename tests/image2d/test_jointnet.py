@@ -12,8 +12,10 @@ from ds3d.image2d.jointnet import (
     STRIDE,
     JointNet,
     JointNetShape,
+    ScaledLogits,
     fold_batch_norms,
     logits_on_grid,
+    read_logits,
     spatial_softmax,
 )
 from ds3d.skeleton import NUM_JOINTS
@@ -30,6 +32,25 @@ def test_grid_cells_read_the_output_cell_under_their_pixel():
     want = ((3 * j + MARGIN) / STRIDE).clamp(max=last_u)
     want = want + 100 * ((3 * i + MARGIN) / STRIDE).clamp(max=last_v)
     torch.testing.assert_close(grid[0, 2], want + 2)
+
+
+def test_a_crops_maps_are_read_off_a_view_of_the_image_at_its_own_pixels():
+    v, u = torch.meshgrid(torch.arange(60.0), torch.arange(50.0), indexing="ij")
+    view = ScaledLogits((u + 100 * v).expand(1, NUM_JOINTS, 60, 50), (0.8, 0.75))
+    # A crop whose corner is at image px (20, 12), resized by (0.9, 0.85): 40 x 30 px.
+    out = read_logits([view], (0.9, 0.85), (20, 12), 40, 30)
+    assert out is not None and out.shape == (1, NUM_JOINTS, (40 + 2 * MARGIN) // 4, 16)
+    i, j = torch.meshgrid(torch.arange(18.0), torch.arange(16.0), indexing="ij")
+    cells = []
+    for cell, scale, corner, level in ((j, 0.9, 20, 0.8), (i, 0.85, 12, 0.75)):
+        crop_px = STRIDE * cell - MARGIN  # the padded input's px of the output cell
+        image_px = (crop_px + 0.5) / scale - 0.5 + corner
+        level_px = (image_px + 0.5) * level - 0.5
+        cells.append((level_px + MARGIN) / STRIDE)  # the view's output cell there
+    # The view's values are linear in its cells: reading them bilinearly is exact.
+    torch.testing.assert_close(out[0, 3], cells[0] + 100 * cells[1])
+    # A view more than the network's zoom away (0.8 / 0.5) is not read.
+    assert read_logits([view], (0.5, 0.5), (20, 12), 40, 30) is None
 
 
 def test_spatial_softmax_is_a_distribution_over_the_cells():

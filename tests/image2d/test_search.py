@@ -18,6 +18,15 @@ def test_levels_reach_from_the_smallest_to_the_largest_person():
     np.testing.assert_allclose(ratios, np.log(params.level_ratio))
 
 
+def test_no_level_seeks_people_below_the_pixel_floor():
+    params = SearchParams()
+    small = level_extents(170, params)  # min_height alone would seek 26 px people
+    assert small[0] * 0.7 == pytest.approx(params.min_extent_px)
+    assert small[-1] * 1.3 >= params.max_height * 170
+    assert len(small) < len(level_extents(480, params))
+    assert level_extents(40, params) == []  # nobody in it could be min_extent_px tall
+
+
 def test_local_peaks_are_the_best_separated_maxima():
     scores = torch.zeros(20, 30)
     scores[5, 5], scores[5, 6], scores[15, 25], scores[2, 20] = 9.0, 8.0, 7.0, 1.0
