@@ -199,12 +199,15 @@ class Pipeline:
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
         """The boxes of an image's proposals that go on to the 2D stage (the box of the
         proposal's joints, so that the crop's base scale is the proposal's): at most
-        max_people, those scoring proposal_floor, and always the best."""
+        max_people, those scoring proposal_floor, and always the best, unless its box has no
+        area: a pose whose joints all share one column or row (a PSM collapsed against the
+        edge of a level's maps) is nobody, and a crop needs an area."""
         search = self.config.search
         keep = (proposals.scores >= search.proposal_floor)[: search.max_people]
         keep[:1] = True
         poses = proposals.poses[: len(keep)][keep]
-        return list(np.concatenate([poses.min(1), poses.max(1)], 1))
+        boxes = np.concatenate([poses.min(1), poses.max(1)], 1)
+        return [box for box in boxes if box[2] > box[0] and box[3] > box[1]]
 
     def estimate_2d(self, images: list[np.ndarray], candidates: list[Candidate]) -> Estimate2D:
         """The 2D stage of every candidate, in the candidates' order: those of known scale at

@@ -4,6 +4,7 @@ the bundled pose database; plus the bundled default model as a user gets it."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from ds3d.data.lsp import load_lsp
 from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
 from ds3d.image2d.result import LOG_EPS, Estimate2D
+from ds3d.image2d.search import Proposals
 from ds3d.io.images import read_image
 from ds3d.lifter import LifterConfig
 from ds3d.pipeline import Pipeline, PipelineConfig, neighbour_scores
@@ -229,3 +231,18 @@ def test_a_box_the_image_cannot_hold_is_refused_before_any_work(pipeline, images
     for box, why in [((10, 10, 5, 40), "no area"), ((width + 1, 0, width + 9, 9), "outside")]:
         with pytest.raises(InvalidBox, match=why):
             pipeline.estimate(images[:1], bboxes=[box])
+
+
+def test_proposals_without_area_are_not_cropped():
+    """A search proposal whose joints share one column (a PSM collapsed against a level's edge)
+    has no box to crop: it is dropped, even as the best one, where a crop of it raised
+    InvalidBox out of Pipeline.estimate."""
+    flat = np.zeros((NUM_JOINTS, 2), np.float32)
+    flat[:, 1] = np.linspace(38.0, 456.0, NUM_JOINTS)  # x = 0 for every joint
+    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
+    found = Proposals(np.stack([flat, person]), np.array([300.0, 200.0], np.float32), [])
+    estimator = SimpleNamespace(propose=lambda images, search: [found])
+    image = np.zeros((480, 640, 3), np.uint8)
+    candidates = Pipeline(estimator, None).candidates([image], [None])  # type: ignore[arg-type]
+    boxes = [c.box.tolist() for c in candidates]
+    assert boxes == [[10.0, 5.0, 60.0, 90.0], [0.0, 0.0, 640.0, 480.0]]

@@ -253,7 +253,9 @@ class PoseEstimator2D:
         person is from the canonical extent (nearest_scale). Returns the choice (B,) index into
         scales, the base's index, and each crop's padded_logits at the base scale, for the
         full pass to reuse where the base is chosen (elsewhere the network runs again: its
-        maps at the chosen scale are worth half a point, docs/tuning.md)."""
+        maps at the chosen scale are worth half a point, docs/tuning.md). A crop with views
+        (the search's maps of its image) reads its base maps off the nearest (read_logits)
+        rather than running the network."""
         p, jointnet = self.params, self.jointnet
         assert jointnet is not None, "the scales are chosen by the joint network"
         base = min(range(len(scales)), key=lambda k: abs(math.log(scales[k])))
