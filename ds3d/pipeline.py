@@ -40,6 +40,7 @@ import torch
 from ds3d.boxes import checked_box, person_boxes, suppress
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
+from ds3d.image2d.crops import crop_region
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
@@ -184,16 +185,18 @@ class Pipeline:
     def candidates(self, images: list[np.ndarray], boxes: list) -> list[Candidate]:
         """The crops of B images: each given box, whose scale the 2D stage chooses; for an
         image without one, its people search's proposals (ds3d.image2d.search), whose scale
-        the search has found, and the whole image as one more box: where a photo is a tight
-        crop around its person it is the better one, and it finds people the image's edge
-        cuts."""
+        the search has found, and the whole image as one more box, which finds people the
+        image's edge cuts, unless a proposal's crop already holds most of the image
+        (SearchParams.whole_image_cover)."""
         searched = [i for i, box in enumerate(boxes) if box is None]
         proposals = self.estimator.propose([images[i] for i in searched], self.config.search)
         out = [Candidate(i, box, True, False) for i, box in enumerate(boxes) if box is not None]
         for i, found in zip(searched, proposals, strict=True):
             whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
-            out += [Candidate(i, box, False, True) for box in self._proposal_boxes(found)]
-            out.append(Candidate(i, whole, False, False, found.levels))
+            boxes = self._proposal_boxes(found)
+            out += [Candidate(i, box, False, True) for box in boxes]
+            if not any(self._covers(box, images[i]) for box in boxes):
+                out.append(Candidate(i, whole, False, False, found.levels))
         return out
 
     def _proposal_boxes(self, proposals: Proposals) -> list[np.ndarray]:
@@ -208,6 +211,13 @@ class Pipeline:
         poses = proposals.poses[: len(keep)][keep]
         boxes = np.concatenate([poses.min(1), poses.max(1)], 1)
         return [box for box in boxes if box[2] > box[0] and box[3] > box[1]]
+
+    def _covers(self, box: np.ndarray, image: np.ndarray) -> bool:
+        """Whether the crop around a person box (crops.crop_region) holds at least
+        SearchParams.whole_image_cover of the image's area."""
+        height, width = image.shape[:2]
+        (x0, y0, x1, y1), _ = crop_region(box, width, height, self.estimator.params)
+        return (x1 - x0) * (y1 - y0) >= self.config.search.whole_image_cover * width * height
 
     def estimate_2d(self, images: list[np.ndarray], candidates: list[Candidate]) -> Estimate2D:
         """The 2D stage of every candidate, in the candidates' order: those of known scale at

@@ -13,6 +13,7 @@ import torch
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
+from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.image2d.search import Proposals
 from ds3d.io.images import read_image
@@ -241,8 +242,26 @@ def test_proposals_without_area_are_not_cropped():
     flat[:, 1] = np.linspace(38.0, 456.0, NUM_JOINTS)  # x = 0 for every joint
     person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
     found = Proposals(np.stack([flat, person]), np.array([300.0, 200.0], np.float32), [])
-    estimator = SimpleNamespace(propose=lambda images, search: [found])
     image = np.zeros((480, 640, 3), np.uint8)
-    candidates = Pipeline(estimator, None).candidates([image], [None])  # type: ignore[arg-type]
-    boxes = [c.box.tolist() for c in candidates]
+    boxes = [c.box.tolist() for c in _candidates(found, image)]
     assert boxes == [[10.0, 5.0, 60.0, 90.0], [0.0, 0.0, 640.0, 480.0]]
+
+
+def test_the_whole_image_is_no_second_crop_of_a_person_who_fills_it():
+    """A photo that is a tight crop around its person: the proposal's crop holds the whole
+    image, which is then not estimated again as a crop of its own; a smaller person leaves the
+    whole image its own crop (it finds people the image's edge cuts)."""
+    image = np.zeros((200, 120, 3), np.uint8)
+    ys, xs = np.linspace(15.0, 185.0, NUM_JOINTS), np.linspace(25.0, 95.0, NUM_JOINTS)
+    filling = np.stack([xs, ys], 1)
+    found = Proposals(filling[None], np.array([300.0], np.float32), [])
+    assert [c.box.tolist() for c in _candidates(found, image)] == [[25.0, 15.0, 95.0, 185.0]]
+    small = 0.3 * filling + 40.0
+    found = Proposals(small[None], np.array([300.0], np.float32), [])
+    assert len(_candidates(found, image)) == 2
+
+
+def _candidates(found: Proposals, image: np.ndarray):
+    """Pipeline.candidates of one image without a box whose search finds `found`."""
+    estimator = SimpleNamespace(propose=lambda images, search: [found], params=EstimatorParams())
+    return Pipeline(estimator, None).candidates([image], [None])  # type: ignore[arg-type]

@@ -39,6 +39,20 @@ class Crop:
     views: Sequence[ScaledLogits] = ()
 
 
+def crop_region(
+    box, width: int, height: int, params: EstimatorParams
+) -> tuple[tuple[int, int, int, int], float]:
+    """The region of a (width, height) px image cropped around a person box (x0, y0, x1, y1)
+    px: the box with box_margin of the person's extent on every side, within the image.
+    Returns ((x0, y0, x1, y1) int px, the person's extent in px)."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    extent = max(x1 - x0, y1 - y0) / params.box_to_extent
+    margin = params.box_margin * extent
+    cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
+    cx1, cy1 = min(int(np.ceil(x1 + margin)), width), min(int(np.ceil(y1 + margin)), height)
+    return (cx0, cy0, cx1, cy1), extent
+
+
 def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[Crop]:
     """Base scale per image: from the person box if given, else from the image size."""
     out = []
@@ -53,11 +67,7 @@ def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> 
             out.append(Crop(image, 0, 0, params.canonical_extent / extent))
             continue
         h, w = image.shape[:2]
-        x0, y0, x1, y1 = (float(v) for v in checked_box(box, w, h))
-        extent = max(x1 - x0, y1 - y0) / params.box_to_extent
-        margin = params.box_margin * extent
-        cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
-        cx1, cy1 = min(int(np.ceil(x1 + margin)), w), min(int(np.ceil(y1 + margin)), h)
+        (cx0, cy0, cx1, cy1), extent = crop_region(checked_box(box, w, h), w, h, params)
         crop = np.ascontiguousarray(image[cy0:cy1, cx0:cx1])
         out.append(Crop(crop, cx0, cy0, params.canonical_extent / extent))
     return out

@@ -61,6 +61,10 @@ class SearchParams:
     peaks_per_level: at most this many proposals per level.
     overlap: IoU above which the lesser of two proposals (or of two people) is dropped.
     max_people: at most this many proposals per image go on to the full 2D stage.
+    whole_image_cover: the whole image goes through the 2D stage as one more crop (it finds
+        people the image's edge cuts) unless a proposal's crop (crops.crop_region) holds at
+        least this fraction of it: in a photo that is a tight crop around its person (LSP's)
+        both are that person, estimated twice.
     proposal_floor: proposals whose root score is below it do not (the best one always does).
     score_center, score_width: person_probability = sigmoid((psm score - center) / width).
     max_aspect_ratio: the longest image side searched, in multiples of the shortest. Every
@@ -78,6 +82,7 @@ class SearchParams:
     peaks_per_level: int = 5
     overlap: float = 0.5
     max_people: int = 8
+    whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
     score_center: float = -225.0
     score_width: float = 9.7
