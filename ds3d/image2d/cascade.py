@@ -220,12 +220,14 @@ def group_unaries(
     probs = cascade_probs(layers, channels, p, sizes, mixtures, cells)[-1]
     timings["traversal"] += time.perf_counter() - t0
     if p.flip_test:
-        mirror_channels, _ = group_channels([mirror_on_grid(im, p.stride) for im in group], timings)
+        mirrors = [mirror_on_grid(image, p.stride) for image in group]
+        mirror_channels, mirror_sizes = group_channels(mirrors, timings)
         if cells is not None:
-            grid = grid_positions(*mirror_channels.shape[-2:], p.stride)[1:]
-            cells = flip_columns(cells[:, None], sizes, p.stride, (len(group), 1, *grid))[:, 0]
+            height, width = mirror_channels.shape[2], mirror_channels.shape[3]
+            _, rows, cols = grid_positions(height, width, p.stride)
+            cells = flip_columns(cells[:, None], sizes, p.stride, (len(group), 1, rows, cols))[:, 0]
         t0 = time.perf_counter()
-        mirrored = cascade_probs(layers, mirror_channels, p, sizes, mixtures, cells)[-1]
+        mirrored = cascade_probs(layers, mirror_channels, p, mirror_sizes, mixtures, cells)[-1]
         timings["traversal"] += time.perf_counter() - t0
         probs = (probs + unmirror(mirrored, sizes, p.stride, probs.shape)) / 2
     unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
