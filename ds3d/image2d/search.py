@@ -60,7 +60,8 @@ class SearchParams:
     peak_radius: cells; a root score is a proposal where it is the maximum within the radius.
     peaks_per_level: at most this many proposals per level.
     overlap: IoU above which the lesser of two proposals (or of two people) is dropped.
-    max_people: at most this many proposals per image go on to the full 2D stage.
+    max_people: at most this many proposals per image go on to the full 2D stage (asked for
+        its best person alone, an image sends its best proposal).
     whole_image_cover: the whole image goes through the 2D stage as one more crop (it finds
         people the image's edge cuts) unless a proposal's crop (crops.crop_region) holds at
         least this fraction of it: in a photo that is a tight crop around its person (LSP's)
