@@ -1,5 +1,6 @@
-"""Padded size buckets: the 2D stage pads what it batches (the joint network's input, a
-traversal group's channels, the search's maps) to one of eight sizes per octave of each side.
+"""Padded size buckets: the 2D stage pads what it batches (a traversal group's channels, the
+search's maps) to one of eight sizes per octave of each side, and the joint network's input to
+one of four (jointnet.NET_BUCKET_STEPS).
 
 A service sees images of every size. Were every tensor sized by its image, each new size would
 bring new oneDNN primitives and buffers of new sizes, and glibc's malloc keeps the free memory
@@ -15,9 +16,10 @@ from __future__ import annotations
 STEPS_PER_OCTAVE = 8
 
 
-def bucket(size: int) -> int:
+def bucket(size: int, steps: int = STEPS_PER_OCTAVE) -> int:
     """The bucket of a side of `size` px (or cells): the smallest multiple of the octave's step
-    at or above it, the step being 1 / STEPS_PER_OCTAVE of the octave's start (2^k <= size <
-    2^(k+1)); sizes up to 2 * STEPS_PER_OCTAVE are their own bucket."""
-    step = max((1 << (size.bit_length() - 1)) // STEPS_PER_OCTAVE, 1)
+    at or above it, the step being 1 / steps of the octave's start (2^k <= size < 2^(k+1));
+    sizes up to 2 * steps are their own bucket. Fewer steps: fewer shapes, more padding (at
+    most 1 / steps of the size)."""
+    step = max((1 << (size.bit_length() - 1)) // steps, 1)
     return -(-size // step) * step

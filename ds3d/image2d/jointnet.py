@@ -47,6 +47,11 @@ CPU_BFLOAT16 = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 # extent: the zoom it was trained with (ds3d.training.jointnet.ZOOM).
 ZOOM_REACH = 1.3
 MARGIN = 16  # px of zeros around an image at inference (logits_on_grid); a multiple of STRIDE
+# The network's input is padded to buckets of NET_BUCKET_STEPS sizes per octave of each side,
+# coarser than the rest of the 2D stage's: each new input shape costs oneDNN about 10 ms of
+# primitive creation (two dozen convolutions), several times the convolutions' own time, and
+# the primitive cache holds every shape met only where they are few.
+NET_BUCKET_STEPS = 4
 
 
 @dataclass(frozen=True)
@@ -153,15 +158,15 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
     extend past their images (its effect: docs/tuning.md): lab (B, 3, H, W) Lab / 100 ->
     (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. The network
-    runs on more zeros below and right of that border, up to the bucket of each side
-    (ds3d.image2d.buckets). Computed in the network's dtype and on its device: bfloat16 as
+    runs on more zeros below and right of that border, up to the bucket of each side at
+    NET_BUCKET_STEPS per octave (ds3d.image2d.buckets). Computed in the network's dtype and on its device: bfloat16 as
     load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or a float32 network under
     bfloat16 autocast there, as trained; returned on the CPU."""
     height, width = lab.shape[-2:]
     padded_h, padded_w = height + 2 * MARGIN, width + 2 * MARGIN
-    padded = F.pad(
-        lab, (MARGIN, bucket(padded_w) - width - MARGIN, MARGIN, bucket(padded_h) - height - MARGIN)
-    )
+    right = bucket(padded_w, NET_BUCKET_STEPS) - width - MARGIN
+    bottom = bucket(padded_h, NET_BUCKET_STEPS) - height - MARGIN
+    padded = F.pad(lab, (MARGIN, right, MARGIN, bottom))
     weight = next(net.parameters(), lab)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
