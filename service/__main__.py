@@ -20,7 +20,7 @@ from service.access.keys import InvalidKeys
 from service.allocator import run_under_jemalloc
 from service.settings import Settings
 
-ONEDNN_CACHE_ENTRIES = 4
+ONEDNN_CACHE_ENTRIES = 1024
 # Under glibc's malloc, buffers from this size on get their own mappings, given back when freed:
 # the 2D stage's buffers vary with the images and the batches, and glibc's arenas kept the free
 # memory around them (docs/service-results.md, memory; jemalloc needs no such bound).
@@ -69,10 +69,12 @@ def main(argv: list[str] | None = None) -> int:
         run_under_jemalloc(args)  # returns when jemalloc is missing or already loaded
     # Before torch loads: keep OpenMP to the configured threads too.
     os.environ.setdefault("OMP_NUM_THREADS", str(settings.torch_threads))
-    # oneDNN keeps the primitives (and their buffers) of the last 1,024 layer shapes it ran, and
-    # every new image size brings new shapes: a cache that grows for as long as the service
-    # meets new sizes, and that rarely hits (`ds3d bench memory` over 360 LSP images with glibc:
-    # +15.5 % RSS with the default, +8.4 % with 16 entries, +6.0 % with 4, at the same speed).
+    # oneDNN keeps the primitives of the last ONEDNN_CACHE_ENTRIES layer shapes it ran; one
+    # missed costs about 0.5 ms to create, some 10 ms for the joint network on a new input
+    # shape, several times its convolutions' own time. The network's inputs are padded to a
+    # few size buckets (jointnet.NET_BUCKET_STEPS): all 1,000 LSP test images make 48 input
+    # shapes and 687 primitives, which the cache holds, so that it stops growing once they
+    # have been met (docs/service-results.md, soak).
     os.environ.setdefault("ONEDNN_PRIMITIVE_CACHE_CAPACITY", str(ONEDNN_CACHE_ENTRIES))
     map_large_buffers(GLIBC_MMAP_THRESHOLD)
 
