@@ -35,6 +35,10 @@ class RefineParams:
     # the side); each joint then goes to its pooled block's best cell, then to its local
     # centroid on the full grid (InferenceParams.joint_cells).
     pool: int = 2
+    # Lloyd steps of the binaries' k-means (fit_pairwise_mixtures): a batch's rows took 12-20
+    # to settle all at once, at the same PCK as 8 or 4 (docs/tuning.md, refinement), and they
+    # were half of the refinement's time.
+    kmeans_iterations: int = 8
 
 
 def image_to_cells(points: torch.Tensor, map_to_image: torch.Tensor) -> torch.Tensor:
@@ -119,6 +123,7 @@ def refine(
         weights.reshape(b * s, n),
         n_components=config.components,
         min_var=config.min_var / pool**2,
+        iterations=config.kmeans_iterations,
     )
 
     def solve(rows: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
