@@ -159,9 +159,9 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     extend past their images (its effect: docs/tuning.md): lab (B, 3, H, W) Lab / 100 ->
     (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. The network
     runs on more zeros below and right of that border, up to the bucket of each side at
-    NET_BUCKET_STEPS per octave (ds3d.image2d.buckets). Computed in the network's dtype and on its device: bfloat16 as
-    load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or a float32 network under
-    bfloat16 autocast there, as trained; returned on the CPU."""
+    NET_BUCKET_STEPS per octave (ds3d.image2d.buckets). Computed in the network's dtype and on
+    its device: bfloat16 as load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or
+    a float32 network under bfloat16 autocast there, as trained; returned on the CPU."""
     height, width = lab.shape[-2:]
     padded_h, padded_w = height + 2 * MARGIN, width + 2 * MARGIN
     right = bucket(padded_w, NET_BUCKET_STEPS) - width - MARGIN
