@@ -38,6 +38,8 @@ import numpy as np
 import torch
 
 from ds3d.boxes import checked_box, person_boxes, suppress
+from ds3d.confidence import FILE_NAME as CALIBRATION_FILE
+from ds3d.confidence import JointCalibration
 from ds3d.fit.camera import project
 from ds3d.fit.energy import projection_energy
 from ds3d.image2d.crops import crop_region
@@ -109,11 +111,16 @@ class Pipeline:
     lift_estimate (the 3D stage with the refinement)."""
 
     def __init__(
-        self, estimator: PoseEstimator2D, lifter: Lifter, config: PipelineConfig = PipelineConfig()
+        self,
+        estimator: PoseEstimator2D,
+        lifter: Lifter,
+        config: PipelineConfig = PipelineConfig(),
+        joint_calibration: JointCalibration | None = None,
     ):
         self.estimator = estimator
         self.lifter = lifter
         self.config = config
+        self.joint_calibration = joint_calibration  # None: the raw confidences
 
     @classmethod
     def load(
@@ -125,15 +132,17 @@ class Pipeline:
         database: str = "posedb",
         image2d: str = "image2d",
     ) -> Pipeline:
-        """The models of `model_dir` (default models/): the 2D stage in `image2d`, the pose
-        database in `database`; on `device` the 3D stage and the 2D stage's joint network (its
-        forests and PSM run on the CPU). Raises DataFormatError when either is missing or
-        malformed."""
+        """The models of `model_dir` (default models/): the 2D stage in `image2d` (with its
+        joint_calibration.json where it has one, ds3d.confidence), the pose database in
+        `database`; on `device` the 3D stage and the 2D stage's joint network (its forests and
+        PSM run on the CPU). Raises DataFormatError when either is missing or malformed."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
         estimator = PoseEstimator2D.load(directory / image2d, device)
         lifter_config = LifterConfig() if lifter_config is None else lifter_config
         lifter = Lifter.load(directory, device=device, config=lifter_config, database=database)
-        return cls(estimator, lifter, config)
+        calibration_file = directory / image2d / CALIBRATION_FILE
+        calibration = JointCalibration.load(calibration_file) if calibration_file.exists() else None
+        return cls(estimator, lifter, config, calibration)
 
     @property
     def model_id(self) -> str:
@@ -302,7 +311,9 @@ class Pipeline:
             chosen = lifter.problems(query, best.joint_set)
             pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, chosen)
         x = query.joints_2d
-        probability = est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS
+        probability = (est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS).clamp(0.0, 1.0)
+        if self.joint_calibration is not None:
+            probability = self.joint_calibration(probability)
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
         timings["total"] = 1000 * elapsed
         joints_2d = x.cpu()
@@ -312,7 +323,7 @@ class Pipeline:
             joints_2d_initial=first.joints_2d.cpu(),
             joints_2d_iterations=torch.stack(history, 1).cpu(),
             joints_3d=pose.detach().cpu(),
-            confidence=probability.clamp(0.0, 1.0).cpu(),
+            confidence=probability.cpu(),
             facing_camera=estimate.facing_camera.cpu(),
             joint_set=lifter.set_names(best.joint_set),
             psm_energy=torch.stack(energies, 1).cpu(),

@@ -20,7 +20,8 @@ class Person:
     box: (4,) float32 x0, y0, x1, y1 px, the box of its joints. score: P(a person) in [0, 1].
     person_found: the score at least min_score, or a box was given. joints_2d: (14, 2) float32
     px, the refined pose; joints_2d_initial: (14, 2), the 2D stage's. joints_3d: (14, 3) float32
-    mm, camera-oriented, root at the hip midpoint. confidence: (14,) float32 in [0, 1].
+    mm, camera-oriented, root at the hip midpoint. confidence: (14,) float32 in [0, 1], P(the
+    joint lies within PCK@0.2 of the truth) (ds3d.confidence).
     facing_camera: P(faces the camera); below 0.5 its left and right were swapped. joint_set:
     the chosen set. psm_energy: (T,) float32, after each iteration.
     """
@@ -63,7 +64,9 @@ class PipelineResult:
     joints_2d_iterations: (N, T, 14, 2) float32 px, x^ after each iteration.
     joints_3d: (N, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
         root at the hip midpoint.
-    confidence: (N, 14) float32 in [0, 1], the 2D stage's joint probability at x^.
+    confidence: (N, 14) float32 in [0, 1], the probability that the joint lies within PCK@0.2 of
+        the truth (ds3d.confidence; with a model without joint_calibration.json, the 2D stage's
+        probability at x^, which is not).
     facing_camera: (N,) float32 in [0, 1], the 2D stage's probability that the person faces the
         camera; below 0.5 its left and right were swapped (Estimate2D.facing_camera), so a
         value near 0.5 says the left/right labels are a guess.

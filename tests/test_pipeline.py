@@ -216,6 +216,23 @@ def test_bundled_model_refinement_does_not_make_2d_notably_worse(data_dir):
     assert bool(torch.isfinite(torch.cat([r.joints_3d for r in results])).all())
 
 
+def test_the_bundled_confidences_say_how_often_joints_are_right(data_dir):
+    """A confidence is the probability that the joint lies within PCK@0.2 of the truth
+    (ds3d.confidence, fitted on held-out LSP train images): on LSP test images searched, about
+    as many joints are right as the confidences say, and more of the surer ones."""
+    from ds3d.evaluation.lsp import joint_outcomes
+
+    pipeline = Pipeline.load()
+    assert pipeline.joint_calibration is not None, "models/image2d/joint_calibration.json"
+    raw, right = joint_outcomes(pipeline, load_lsp(split="test").subset(range(32)))
+    confidence = pipeline.joint_calibration(raw)
+    assert abs(float(confidence.mean()) - float(right.float().mean())) < 0.15
+    sure = confidence >= 0.5
+    assert float(right[sure].float().mean()) > float(right[~sure].float().mean()) + 0.2
+    # the raw probabilities at one pixel say far less than how often joints are right
+    assert float(raw.mean()) < float(right.float().mean()) - 0.4
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 def test_the_pipeline_runs_on_cuda_as_on_the_cpu(model_dir, images):
     """device="cuda": the joint network and the 3D stage on the GPU; about the same poses (the

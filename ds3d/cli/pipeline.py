@@ -93,6 +93,25 @@ def register(commands, evals, benches) -> None:
     p.set_defaults(func=eval_lsp_pipeline)
 
     p = evals.add_parser(
+        "joint-confidence",
+        help="how often joints are right at each confidence (LSP, searched); --fit calibrates",
+        description="Each image searched, its best person: the expected calibration error and "
+        "reliability of the per-joint confidences, a joint being right within PCK@0.2 "
+        "(ds3d.confidence). --fit fits the calibration on these images and writes it beside "
+        "the 2D model (MODEL_DIR/image2d/joint_calibration.json); fit on held-out images "
+        "(--split train --start 700) only.",
+    )
+    p.add_argument("--split", choices=("test", "train"), default="test")
+    p.add_argument("--start", type=int, default=0, help="skip the split's first n images")
+    p.add_argument("--limit", type=int, help="at most this many images")
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--fit", action="store_true", help="fit and write the calibration")
+    p.add_argument("--plot", type=Path, help="also the reliability diagram as a PNG")
+    p.add_argument("--out", type=Path, help="JSON report")
+    add_model_options(p, threads=min(2, os.cpu_count() or 1))
+    p.set_defaults(func=eval_joint_confidence)
+
+    p = evals.add_parser(
         "people", help="people of any size in 640x480 canvases built from LSP: detection and PCK"
     )
     p.add_argument("--split", choices=("test", "train"), default="test", help="LSP's people")
@@ -260,6 +279,63 @@ def eval_lsp_pipeline(args) -> int:
         "threads": args.threads,
         **results,
     }
+    write_report(report, args.out)
+    return 0
+
+
+def eval_joint_confidence(args) -> int:
+    """ECE and reliability of the raw and the calibrated confidences (the model's calibration,
+    or with --fit the one fitted here and written to the model directory)."""
+    from ds3d.confidence import (
+        FILE_NAME,
+        expected_calibration_error,
+        fit_joint_calibration,
+        reliability,
+    )
+    from ds3d.data.lsp import load_lsp
+    from ds3d.evaluation.lsp import joint_outcomes
+    from ds3d.skeleton import JOINT_NAMES
+    from ds3d.viz.reliability import plot_reliability
+
+    pipeline = load_pipeline(args)
+    ann = load_lsp(split=args.split)
+    stop = len(ann) if args.limit is None else min(len(ann), args.start + args.limit)
+    ann = ann.subset(range(args.start, stop))
+    raw, correct = joint_outcomes(pipeline, ann, args.batch)
+    if args.fit:
+        pipeline.joint_calibration = fit_joint_calibration(raw, correct)
+        pipeline.joint_calibration.save(args.model_dir / "image2d" / FILE_NAME)
+    curves = {"raw": raw}
+    if pipeline.joint_calibration is not None:
+        curves["calibrated"] = pipeline.joint_calibration(raw)
+    split = "test im1001-im2000" if args.split == "test" else "train im0001-im1000"
+    report = {
+        "dataset": f"LSP {split}, images [{args.start}:{stop}] of the split, searched",
+        "n_images": len(ann),
+        "fitted_here": args.fit,
+        "fraction_right": round(float(correct.double().mean()), 4),
+        **{
+            label: {
+                "ece": round(expected_calibration_error(conf, correct), 4),
+                "reliability": reliability(conf, correct),
+                "per_joint": {
+                    name: {
+                        "confidence": round(float(conf[:, j].mean()), 4),
+                        "fraction_right": round(float(correct[:, j].double().mean()), 4),
+                    }
+                    for j, name in enumerate(JOINT_NAMES)
+                },
+            }
+            for label, conf in curves.items()
+        },
+    }
+    if args.plot is not None:
+        eces = ", ".join(f"{label} ECE {report[label]['ece']:.3f}" for label in curves)
+        plot_reliability(
+            {label: report[label]["reliability"] for label in curves},
+            args.plot,
+            f"{report['dataset']}: {eces}",
+        )
     write_report(report, args.out)
     return 0
 

@@ -1,7 +1,8 @@
 """LSP's 2D protocol: PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and
 mean, and mean pixel error, over all 14 joints of every image (occluded joints included), for
 the 2D stage (evaluate_2d) and for the 3D stage's 2D refinement and its ablation, the paper's
-fig:query (evaluate_refinement).
+fig:query (evaluate_refinement); and how often the answered joints are right at each confidence
+(joint_outcomes, for ds3d.confidence).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import time
 import torch
 
 from ds3d.data.lsp import PoseAnnotations
-from ds3d.evaluation.metrics import pck, pixel_error
+from ds3d.evaluation.metrics import pck, pixel_error, torso_diameter
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import Estimate2D
 from ds3d.io.images import read_image
@@ -133,3 +134,27 @@ def evaluate_refinement(
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "results": {k: pck_report(torch.cat(v), gt) for k, v in preds.items()},
     }
+
+
+def joint_outcomes(
+    pipeline: Pipeline, ann: PoseAnnotations, batch: int = 16, threshold: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pipeline as a user without a box runs it (each image searched, its best person) on
+    the images of `ann`: the 2D stage's raw probability at each answered joint (the confidence
+    without the pipeline's JointCalibration) and whether the joint lies within `threshold`
+    times the torso diameter of the truth (PCK's test). Returns (N, 14) float32, (N, 14) bool."""
+    calibration, pipeline.joint_calibration = pipeline.joint_calibration, None
+    raw, joints = [], []
+    try:
+        with progress(total=len(ann), desc="joint outcomes", unit="img") as bar:
+            for start in range(0, len(ann), batch):
+                images = [read_image(p) for p in ann.image_paths[start : start + batch]]
+                result = pipeline.estimate(images)
+                raw.append(result.confidence)
+                joints.append(result.joints_2d)
+                bar.update(len(images))
+    finally:
+        pipeline.joint_calibration = calibration
+    gt = torch.from_numpy(ann.joints).float()
+    correct = (torch.cat(joints) - gt).norm(dim=-1) <= threshold * torso_diameter(gt)[:, None]
+    return torch.cat(raw), correct

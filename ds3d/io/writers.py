@@ -12,7 +12,9 @@
 COCO's 17 keypoints from ds3d's 14 LSP joints: the shoulders, elbows, wrists, hips, knees and
 ankles map one to one; COCO's nose, eyes and ears have no LSP joint and are written (0, 0)
 with visibility 0; LSP's neck and head top have no COCO keypoint and are left out (they are in
-predictions.jsonl). A mapped keypoint has visibility 2; its confidence is in "keypoint_scores".
+predictions.jsonl). A mapped keypoint has visibility 2 where its confidence (the probability that
+it lies within PCK@0.2 of the truth, ds3d.confidence) is at least 0.5, else 1 (labelled, likely
+off); its confidence is in "keypoint_scores".
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ COCO_SKELETON = (
     (16, 14), (14, 12), (17, 15), (15, 13), (12, 13), (6, 12), (7, 13), (6, 7), (6, 8),
     (7, 9), (8, 10), (9, 11), (2, 3), (1, 2), (1, 3), (2, 4), (3, 5), (4, 6), (5, 7),
 )  # fmt: skip
+VISIBLE_CONFIDENCE = 0.5  # COCO's v = 2 (visible) from this confidence on, else 1
 # For each COCO keypoint, the LSP joint (ds3d.skeleton.JOINT_NAMES index) or None.
 COCO_FROM_LSP = tuple(
     JOINT_NAMES.index(name) if name in JOINT_NAMES else None for name in COCO_KEYPOINTS
@@ -45,15 +48,19 @@ COCO_FROM_LSP = tuple(
 
 
 def coco_keypoints(joints_2d: np.ndarray, confidence: np.ndarray) -> tuple[list, list]:
-    """(14, 2) px and (14,) -> COCO's flat [x, y, v] * 17 and its 17 keypoint scores."""
+    """(14, 2) px and (14,) -> COCO's flat [x, y, v] * 17 and its 17 keypoint scores; v is 2
+    for a confidence of at least VISIBLE_CONFIDENCE, else 1."""
     flat, scores = [], []
     for joint in COCO_FROM_LSP:
         if joint is None:
             flat += [0.0, 0.0, 0]
             scores.append(0.0)
         else:
-            flat += [round(float(joints_2d[joint, 0]), 2), round(float(joints_2d[joint, 1]), 2), 2]
-            scores.append(round(float(confidence[joint]), 4))
+            sure = float(confidence[joint])
+            visible = 2 if sure >= VISIBLE_CONFIDENCE else 1
+            flat += [round(float(joints_2d[joint, 0]), 2), round(float(joints_2d[joint, 1]), 2)]
+            flat.append(visible)
+            scores.append(round(sure, 4))
     return flat, scores
 
 

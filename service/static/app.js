@@ -570,10 +570,9 @@ function draw2d() {
   const size = Math.max(canvas.width, canvas.height);
   let joints = 0;
   const several = state.people.length > 1 || Array.isArray(state.answer?.people);
-  const surest = surestConfidence(state.people);
   for (const person of state.people) {
     if (several) drawFoundBox(ctx, person, scale, size);
-    joints += drawSkeleton2d(ctx, person, scale, size, surest);
+    joints += drawSkeleton2d(ctx, person, scale, size);
   }
   if (state.box) drawUserBox(ctx, state.box, scale, size);
   // What was drawn, for tests and tools to check (not what was meant to be).
@@ -589,15 +588,8 @@ function placeholder(ctx, canvas, text) {
   ctx.fillText(text, canvas.width / 2, canvas.height / 2);
 }
 
-// The 2D stage's confidences are probabilities at one pixel: small numbers (often 0.02 to
-// 0.2), so the dots are shaded relative to the answer's surest joint, not to 1.
-function surestConfidence(people) {
-  const all = people.flatMap((person) => person.confidence || []).filter(Number.isFinite);
-  return Math.max(1e-6, ...all);
-}
-
 // One person's limbs and joints; returns the number of joints drawn.
-function drawSkeleton2d(ctx, person, scale, size, surest) {
+function drawSkeleton2d(ctx, person, scale, size) {
   const points = person.joints_2d.map(([x, y]) => [x * scale, y * scale]);
   const ok = (i) => points[i].every(Number.isFinite);
   ctx.lineCap = "round";
@@ -618,8 +610,9 @@ function drawSkeleton2d(ctx, person, scale, size, surest) {
   const radius = Math.max(3, 0.012 * size);
   points.forEach((point, i) => {
     if (!ok(i)) return;
-    // white for the surest joint, darker the less sure (ds3d/viz/overlay.py's scheme)
-    const sure = (person.confidence?.[i] ?? surest) / surest;
+    // white for a joint surely right, darker the less sure: its confidence is the probability
+    // that it lies within PCK@0.2 of the truth (ds3d/viz/overlay.py's scheme)
+    const sure = person.confidence?.[i] ?? 1;
     const shade = Math.round(255 * Math.min(Math.max(sure, 0), 1));
     ctx.fillStyle = `rgb(${shade}, ${shade}, ${shade})`;
     ctx.strokeStyle = "#111";
