@@ -5,8 +5,8 @@ The 2D stage's probability of a joint at the answered pixel (PipelineResult's ra
 a probability at one pixel among thousands: 0.02-0.14 on LSP, whatever the joint's chance of being
 right. JointCalibration maps it per joint type by a logistic fit on its logarithm, fitted on
 held-out images (`ds3d calibrate-joints`, LSP train im0701-im1000) and stored beside the 2D model
-(image2d/joint_calibration.json). expected_calibration_error and reliability measure how well
-confidences match how often joints are right (docs/RESULTS.md, joint confidence).
+(image2d/joint_calibration.json). How well confidences match how often joints are right:
+ds3d.evaluation.metrics.expected_calibration_error (docs/RESULTS.md, joint confidence).
 """
 
 from __future__ import annotations
@@ -74,36 +74,3 @@ def fit_joint_calibration(
         hessian = design.transpose(1, 2) @ (design * (p * (1 - p))[..., None]) + ridge * eye
         theta = theta - torch.linalg.solve(hessian, gradient)
     return JointCalibration(theta[:, 0].float(), theta[:, 1].float())
-
-
-def reliability(confidence: torch.Tensor, correct: torch.Tensor, bins: int = 10) -> list[dict]:
-    """The reliability diagram's bins of equal width over [0, 1]: for each bin holding any
-    confidence, {low, high, count, confidence: the mean confidence, accuracy: the fraction
-    right}. confidence, correct: any shape, alike."""
-    conf, right = confidence.flatten().double(), correct.flatten().double()
-    index = (conf * bins).long().clamp(0, bins - 1)
-    rows = []
-    for k in range(bins):
-        inside = index == k
-        n = int(inside.sum())
-        if n:
-            rows.append(
-                {
-                    "low": k / bins,
-                    "high": (k + 1) / bins,
-                    "count": n,
-                    "confidence": round(float(conf[inside].mean()), 4),
-                    "accuracy": round(float(right[inside].mean()), 4),
-                }
-            )
-    return rows
-
-
-def expected_calibration_error(
-    confidence: torch.Tensor, correct: torch.Tensor, bins: int = 10
-) -> float:
-    """ECE: the mean over the reliability bins, weighted by their counts, of |mean confidence -
-    fraction right|; 0 for confidences that are exactly as often right as they say."""
-    rows = reliability(confidence, correct, bins)
-    total = sum(r["count"] for r in rows)
-    return sum(r["count"] * abs(r["confidence"] - r["accuracy"]) for r in rows) / max(total, 1)

@@ -1,15 +1,12 @@
-"""Per-joint confidence as a probability (ds3d.confidence): the fit, its file, the measures."""
+"""Per-joint confidence as a probability (ds3d.confidence): the fit, its file; and the measures
+of calibration (ds3d.evaluation.metrics)."""
 
 from __future__ import annotations
 
 import torch
 
-from ds3d.confidence import (
-    JointCalibration,
-    expected_calibration_error,
-    fit_joint_calibration,
-    reliability,
-)
+from ds3d.confidence import JointCalibration, fit_joint_calibration
+from ds3d.evaluation.metrics import expected_calibration_error, reliability
 from ds3d.skeleton import NUM_JOINTS
 
 

@@ -286,14 +286,10 @@ def eval_lsp_pipeline(args) -> int:
 def eval_joint_confidence(args) -> int:
     """ECE and reliability of the raw and the calibrated confidences (the model's calibration,
     or with --fit the one fitted here and written to the model directory)."""
-    from ds3d.confidence import (
-        FILE_NAME,
-        expected_calibration_error,
-        fit_joint_calibration,
-        reliability,
-    )
+    from ds3d.confidence import FILE_NAME, fit_joint_calibration
     from ds3d.data.lsp import load_lsp
     from ds3d.evaluation.lsp import joint_outcomes
+    from ds3d.evaluation.metrics import expected_calibration_error, reliability
     from ds3d.skeleton import JOINT_NAMES
     from ds3d.viz.reliability import plot_reliability
 

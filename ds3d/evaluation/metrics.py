@@ -2,7 +2,7 @@
 
 3D (mm): mpjpe (no alignment beyond what the caller did), rigid_error (the paper's "3D pose
 error": rotation + translation, no scale), pa_mpjpe (Procrustes with scale). 2D (px): pck and
-the mean pixel error.
+the mean pixel error. Probabilities: their reliability bins and expected calibration error.
 """
 
 from __future__ import annotations
@@ -70,3 +70,36 @@ def pixel_error(pred, gt, visible=None) -> torch.Tensor:
     mask = torch.ones(gt.shape[:2], dtype=torch.bool) if visible is None else _t(visible).bool()
     distance = (pred - gt).norm(dim=-1) * mask
     return distance.sum(0) / mask.sum(0).clamp_min(1)
+
+
+def reliability(confidence: torch.Tensor, correct: torch.Tensor, bins: int = 10) -> list[dict]:
+    """The reliability diagram's bins of equal width over [0, 1]: for each bin holding any
+    confidence, {low, high, count, confidence: the mean confidence, accuracy: the fraction
+    right}. confidence, correct: any shape, alike."""
+    conf, right = confidence.flatten().double(), correct.flatten().double()
+    index = (conf * bins).long().clamp(0, bins - 1)
+    rows = []
+    for k in range(bins):
+        inside = index == k
+        n = int(inside.sum())
+        if n:
+            rows.append(
+                {
+                    "low": k / bins,
+                    "high": (k + 1) / bins,
+                    "count": n,
+                    "confidence": round(float(conf[inside].mean()), 4),
+                    "accuracy": round(float(right[inside].mean()), 4),
+                }
+            )
+    return rows
+
+
+def expected_calibration_error(
+    confidence: torch.Tensor, correct: torch.Tensor, bins: int = 10
+) -> float:
+    """ECE: the mean over the reliability bins, weighted by their counts, of |mean confidence -
+    fraction right|; 0 for confidences that are exactly as often right as they say."""
+    rows = reliability(confidence, correct, bins)
+    total = sum(r["count"] for r in rows)
+    return sum(r["count"] * abs(r["confidence"] - r["accuracy"]) for r in rows) / max(total, 1)

@@ -17,10 +17,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import PoseAnnotations
-from ds3d.evaluation.metrics import pck
+from ds3d.evaluation.metrics import expected_calibration_error, pck, reliability
 from ds3d.io.images import read_image
 
 CANVAS = (640, 480)  # width, height px
@@ -187,8 +188,10 @@ def calibration(canvases: list[Canvas], candidates, search) -> dict:
     regression of "matches a person" (match) on their PSM scores, recovered from the scores
     (probabilities under `search`'s score_center and score_width). candidates: per canvas,
     every pose answered at min_score 0, (poses (N, 14, 2) px, scores (N,)). Returns the fitted
-    score_center and score_width; tune them on training canvases only."""
-    psm, matched = [], []
+    score_center and score_width (tune them on training canvases only), and how well the
+    scores as answered say how often a candidate is a person: their expected calibration error
+    and reliability bins (ds3d.evaluation.metrics)."""
+    psm, matched, answered = [], [], []
     for canvas, (poses, scores) in zip(canvases, candidates, strict=True):
         scores = np.clip(np.asarray(scores, np.float64), 1e-12, 1 - 1e-12)
         found = match(person_boxes(poses), scores, canvas.boxes()) if len(poses) else []
@@ -196,7 +199,9 @@ def calibration(canvases: list[Canvas], candidates, search) -> dict:
         label[[p for p in found if p >= 0]] = 1
         psm.append(search.score_center + search.score_width * np.log(scores / (1 - scores)))
         matched.append(label)
+        answered.append(scores)
     x, y = np.concatenate(psm), np.concatenate(matched)
+    said, person = torch.from_numpy(np.concatenate(answered)), torch.from_numpy(y > 0)
     # Newton's method on (a, b) of sigmoid(a (x - mean) / sd + b): a two-parameter convex fit
     z = (x - x.mean()) / max(x.std(), 1e-9)
     a, b = 1.0, 0.0
@@ -212,4 +217,6 @@ def calibration(canvases: list[Canvas], candidates, search) -> dict:
         "people": int(y.sum()),
         "score_center": round(float(x.mean() - b * width), 2),
         "score_width": round(float(width), 2),
+        "ece": round(expected_calibration_error(said, person), 4),
+        "reliability": reliability(said, person),
     }
