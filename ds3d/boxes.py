@@ -62,13 +62,34 @@ def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
-def suppress(boxes: np.ndarray, scores: np.ndarray, overlap: float = 0.5) -> np.ndarray:
+def suppress(
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    overlap: float = 0.5,
+    same: np.ndarray | None = None,
+) -> np.ndarray:
     """Greedy non-maximum suppression: boxes (N, 4), scores (N,) higher = surer -> the indices
-    kept, best first: each box kept unless it overlaps a better kept one by IoU > overlap."""
+    kept, best first: each box kept unless it overlaps a better kept one by IoU > overlap, or
+    `same` (N, N) bool, where given, says the two are one."""
     order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
-    pairwise = iou(boxes, boxes)
+    duplicate = iou(boxes, boxes) > overlap
+    if same is not None:
+        duplicate |= same
     kept: list[int] = []
     for i in order:
-        if all(pairwise[i, k] <= overlap for k in kept):
+        if not any(duplicate[i, k] for k in kept):
             kept.append(int(i))
     return np.array(kept, dtype=np.int64)
+
+
+def shared_joints(poses: np.ndarray, radius: float) -> np.ndarray:
+    """poses (N, 14, 2) px -> (N, N) int: for each pair, how many of their joints lie within
+    `radius` times the longer side of the larger of their two boxes of each other. Two answers
+    that share several joints are one person found twice (a whole pose and a partial one);
+    two people side by side, even with overlapping boxes, share none."""
+    poses = np.asarray(poses, np.float64)
+    boxes = person_boxes(poses)
+    extent = (boxes[:, 2:] - boxes[:, :2]).max(-1)  # (N,)
+    reach = radius * np.maximum(extent[:, None], extent[None, :])  # (N, N)
+    distance = np.linalg.norm(poses[:, None] - poses[None], axis=-1)  # (N, N, 14)
+    return (distance < reach[..., None]).sum(-1)

@@ -1,10 +1,12 @@
-"""Person boxes given by users: one check for the CLI, the Python API and the service."""
+"""Person boxes given by users (one check for the CLI, the Python API and the service), and the
+suppression of people answered twice."""
 
 import numpy as np
 import pytest
 
-from ds3d.boxes import checked_box
+from ds3d.boxes import checked_box, iou, person_boxes, shared_joints, suppress
 from ds3d.errors import InvalidBox
+from ds3d.skeleton import NUM_JOINTS
 
 
 def test_a_box_inside_or_overlapping_the_image_is_kept():
@@ -27,3 +29,19 @@ def test_a_box_inside_or_overlapping_the_image_is_kept():
 def test_a_box_the_image_cannot_hold_is_refused_with_the_reason(box, why):
     with pytest.raises(InvalidBox, match=why):
         checked_box(box, 200, 300)
+
+
+def test_a_partial_pose_of_an_answered_person_is_one_person_a_neighbour_is_not():
+    rng = np.random.default_rng(0)
+    whole = np.stack([rng.uniform(100, 220, NUM_JOINTS), np.linspace(50, 350, NUM_JOINTS)], 1)
+    partial = whole.copy()  # its upper joints as the whole pose's, the rest huddled beside them
+    partial[5:] = whole[4] + np.array([-60.0, -10.0])
+    neighbour = whole + np.array([50.0, 0.0])  # beside it: the boxes overlap, no joint shared
+    poses = np.stack([whole, partial, neighbour])
+    boxes, scores = person_boxes(poses), np.array([0.9, 0.95, 0.8])
+    assert iou(boxes[:1], boxes[1:2])[0, 0] < 0.5 and iou(boxes[:1], boxes[2:])[0, 0] > 0.3
+    shared = shared_joints(poses, radius=0.1)
+    assert shared[0, 1] == 5 and shared[0, 2] == 0 and shared[1, 0] == 5
+    # by box overlap alone every one stays; the partial pose is the surer, so the whole goes
+    assert suppress(boxes, scores, 0.5).tolist() == [1, 0, 2]
+    assert suppress(boxes, scores, 0.5, shared >= 3).tolist() == [1, 2]

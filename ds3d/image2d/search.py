@@ -60,6 +60,11 @@ class SearchParams:
     peak_radius: cells; a root score is a proposal where it is the maximum within the radius.
     peaks_per_level: at most this many proposals per level.
     overlap: IoU above which the lesser of two proposals (or of two people) is dropped.
+    same_person_radius, same_person_joints: two people answered are one, and the lesser
+        dropped, where at least same_person_joints of their joints lie within
+        same_person_radius times the larger one's extent of each other (ds3d.boxes.
+        shared_joints): a whole pose and a partial one of the same person overlap by less than
+        `overlap` but share joints, which people side by side do not.
     max_people: at most this many proposals per image go on to the full 2D stage (asked for
         its best person alone, an image sends its best proposal).
     whole_image_cover: the whole image goes through the 2D stage as one more crop (it finds
@@ -82,11 +87,13 @@ class SearchParams:
     peak_radius: int = 3
     peaks_per_level: int = 5
     overlap: float = 0.5
+    same_person_radius: float = 0.1
+    same_person_joints: int = 3
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -225.0
-    score_width: float = 9.7
+    score_center: float = -240.75
+    score_width: float = 10.49
     max_aspect_ratio: float = 8.0
 
 
