@@ -61,8 +61,13 @@ def register(commands, evals, benches) -> None:
     p = benches.add_parser("pipeline", help="images/s end to end and the time of each stage")
     p.add_argument("--batch-sizes", default="1,16")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument(
+        "--boxes",
+        action="store_true",
+        help="each image with its person's box (from its LSP annotation); default: searched",
+    )
     p.add_argument("--out", type=Path, help="JSON report")
-    add_model_options(p)
+    add_model_options(p, device=True)
     p.set_defaults(func=bench_pipeline)
 
 
@@ -81,6 +86,14 @@ def bench_images(n: int, size: tuple[int, int] | None = None) -> list[np.ndarray
     if size is not None:
         images = [cv2.resize(im, size, interpolation=cv2.INTER_LINEAR) for im in images]
     return images
+
+
+def bench_boxes(n: int) -> list[np.ndarray]:
+    """The person boxes (x0, y0, x1, y1) px of bench_images(n), from the LSP annotations."""
+    from ds3d.boxes import person_boxes
+    from ds3d.data.lsp import load_lsp
+
+    return list(person_boxes(load_lsp(split="test").joints[:n]).astype(np.float32))
 
 
 def benchmark_poses(lifter, count: int, seed: int = 0) -> np.ndarray:
@@ -227,13 +240,15 @@ def bench_pipeline(args) -> int:
     pipeline = load_pipeline(args)
     sizes = [int(b) for b in args.batch_sizes.split(",")]
     images = bench_images(max(sizes))
+    boxes = bench_boxes(len(images)) if args.boxes else None
     rows = []
     for batch in sizes:
-        pipeline.estimate(images[:batch])  # warm-up
+        bboxes = None if boxes is None else boxes[:batch]
+        pipeline.estimate(images[:batch], bboxes)  # warm-up
         stages: dict[str, float] = {}
         with progress(total=args.repeats * batch, desc=f"batch {batch}", unit="img") as bar:
             for _ in range(args.repeats):
-                res = pipeline.estimate(images[:batch])
+                res = pipeline.estimate(images[:batch], bboxes)
                 for stage, ms in res.timings_ms.items():
                     stages[stage] = stages.get(stage, 0.0) + ms
                 bar.update(batch)
@@ -246,7 +261,13 @@ def bench_pipeline(args) -> int:
             }
         )
         print(json.dumps(rows[-1]), flush=True)
-    report = {"threads": args.threads, "iterations": pipeline.config.iterations, "rows": rows}
+    report = {
+        "device": args.device,
+        "threads": args.threads,
+        "boxes": args.boxes,
+        "iterations": pipeline.config.iterations,
+        "rows": rows,
+    }
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2) + "\n")

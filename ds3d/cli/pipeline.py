@@ -131,11 +131,14 @@ def register(commands, evals, benches) -> None:
 
 
 def load_pipeline(args):
-    """The Pipeline of --model-dir and --database, on --threads torch threads."""
+    """The Pipeline of --model-dir and --database, on --device where the command has it (else
+    the CPU), on --threads torch threads."""
     from ds3d.pipeline import Pipeline
 
-    torch.set_num_threads(args.threads)
-    return Pipeline.load(args.model_dir, database=args.database)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = getattr(args, "device", "cpu")
+    return Pipeline.load(args.model_dir, device=device, database=args.database)
 
 
 def corner_box(text: str) -> tuple[float, float, float, float]:
