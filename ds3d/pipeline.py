@@ -58,8 +58,8 @@ STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate
 PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or every one
 # Pipeline.estimate's default: people less likely than this are not answered. The score is a
 # calibrated probability (expected calibration error 0.023 on LSP train's held-out canvases,
-# `ds3d eval people --split train --start 700`): answered where more likely a person than not,
-# which there kept 95.9 % of the answers people at 91.1 % recall (93.2 / 92.5 % at 0.2).
+# `ds3d eval people --split train --start 700`): answered where more likely a person than not.
+# There 95.9 % of the answers were people, at 91.1 % recall (at 0.2: 93.2 and 92.5 %).
 MIN_SCORE = 0.5
 
 
