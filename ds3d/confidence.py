@@ -4,9 +4,10 @@ within PCK@0.2 of the truth (0.2 times the person's torso diameter).
 The 2D stage's probability of a joint at the answered pixel (PipelineResult's raw confidence) is
 a probability at one pixel among thousands: 0.02-0.14 on LSP, whatever the joint's chance of being
 right. JointCalibration maps it per joint type by a logistic fit on its logarithm, fitted on
-held-out images (`ds3d calibrate-joints`, LSP train im0701-im1000) and stored beside the 2D model
-(image2d/joint_calibration.json). How well confidences match how often joints are right:
-ds3d.evaluation.metrics.expected_calibration_error (docs/RESULTS.md, joint confidence).
+held-out images (`ds3d eval joint-confidence --split train --start 700 --fit`, LSP train
+im0701-im1000) and stored beside the 2D model (image2d/joint_calibration.json). How well
+confidences match how often joints are right: ds3d.evaluation.metrics.expected_calibration_error
+(docs/RESULTS.md, joint confidence).
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import torch
 from ds3d.skeleton import JOINT_NAMES, NUM_JOINTS
 
 FILE_NAME = "joint_calibration.json"
-# The raw probability's floor before the log: the 2D stage's unaries are floored about there
-# (image2d.result.LOG_EPS), so nothing below it says more.
+# Added to the raw probability before the log, which keeps the log finite where the 2D stage's
+# probability is 0 (it subtracts its own floor, image2d.result.LOG_EPS, from its unaries).
 PROBABILITY_FLOOR = 1e-6
 
 
@@ -42,7 +43,8 @@ class JointCalibration:
     def save(self, path: Path) -> None:
         rows = zip(JOINT_NAMES, self.intercept.tolist(), self.slope.tolist(), strict=True)
         table = {name: {"intercept": a, "slope": b} for name, a, b in rows}
-        path.write_text(json.dumps({"feature": "log(p + 1e-6)", "joints": table}, indent=2) + "\n")
+        document = {"feature": f"log(p + {PROBABILITY_FLOOR:g})", "joints": table}
+        path.write_text(json.dumps(document, indent=2) + "\n")
 
     @classmethod
     def load(cls, path: Path) -> JointCalibration:
