@@ -14,11 +14,11 @@ from functools import partial
 from typing import Any
 
 import torch
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import Response
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.access.rules import API_KEY_SCHEMES, access_rules, guard
+from service.access.rules import API_KEY_SCHEMES, Guard, access_rules
 from service.access.rules import describe as describe_access
 from service.allocator import describe as describe_allocator
 from service.deps import Runtime
@@ -49,9 +49,9 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     install_handlers(app, settings.retry_after_s)
     # The last added runs first: CORS answers preflights, then every request is counted, then
     # its caller is found (or refused), then its head size checked.
-    app.middleware("http")(refuse_large_head)
-    app.middleware("http")(guard)
-    app.middleware("http")(observe_request)
+    app.add_middleware(RefuseLargeHead)
+    app.add_middleware(Guard)
+    app.add_middleware(ObserveRequests)
     if origins := [o.strip() for o in settings.cors_origins.split(",") if o.strip()]:
         app.add_middleware(
             CORSMiddleware,
@@ -152,9 +152,8 @@ def start_batchers(
     return Runtime(engine, lift, pose)
 
 
-def request_head_bytes(request: Request) -> int:
+def request_head_bytes(scope: Scope) -> int:
     """Bytes of the request head as sent: the request line and the header lines."""
-    scope = request.scope
     target = len(scope["raw_path"]) + (
         len(scope["query_string"]) + 1 if scope["query_string"] else 0
     )
@@ -162,27 +161,61 @@ def request_head_bytes(request: Request) -> int:
     return line + sum(len(k) + len(v) + 4 for k, v in scope["headers"]) + 2
 
 
-async def refuse_large_head(request: Request, call_next) -> Response:
+# The middlewares are plain ASGI (not `app.middleware("http")`, whose call_next passes each
+# answer through a memory stream): an answer's head and body then reach the server in one step of
+# the event loop, so a replica killed under load cannot leave a balancer holding a head without
+# its body, which it could not send to another replica (tests/tools/test_crash.py).
+
+
+class RefuseLargeHead:
     """Middleware: 431 naming max_header_bytes for a request head over it. (Uvicorn's own parser
     stops reading at 4 times the setting, with a bare 400, so that a huge head is never
     buffered whole.)"""
-    limit = request.app.state.settings.max_header_bytes
-    if (size := request_head_bytes(request)) > limit:
-        message = f"the request head is {size} bytes, over max_header_bytes = {limit}"
-        return error_response(ApiError(431, "headers_too_large", message))
-    return await call_next(request)
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            limit = scope["app"].state.settings.max_header_bytes
+            if (size := request_head_bytes(scope)) > limit:
+                message = f"the request head is {size} bytes, over max_header_bytes = {limit}"
+                answer = error_response(ApiError(431, "headers_too_large", message))
+                await answer(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
 
 
-async def observe_request(request: Request, call_next) -> Response:
+class ObserveRequests:
     """Middleware: count and time every request by its route template ("unmatched" when no route
-    took it), so that the metrics' labels stay few whatever the URLs."""
-    state = request.app.state
-    t0 = time.perf_counter()
-    try:
-        response = await call_next(request)
-    except Exception as exc:  # a bug: answer 500 (and log it), counted like any other
-        response = error_response(to_api_error(exc, state.settings.retry_after_s))
-    route = request.scope.get("route")
-    label = route.path if route is not None else "unmatched"
-    state.metrics.observe_request(label, response.status_code, time.perf_counter() - t0)
-    return response
+    took it), so that the metrics' labels stay few whatever the URLs; a bug is answered 500 (and
+    logged), counted like any other answer."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        state = scope["app"].state
+        t0 = time.perf_counter()
+        status: int | None = None
+
+        async def send_observed(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_observed)
+        except Exception as exc:
+            if status is not None:  # the answer has begun: the server closes the connection
+                raise
+            answer = error_response(to_api_error(exc, state.settings.retry_after_s))
+            await answer(scope, receive, send_observed)
+        finally:
+            route = scope.get("route")
+            label = route.path if route is not None else "unmatched"
+            state.metrics.observe_request(label, status or 500, time.perf_counter() - t0)

@@ -16,8 +16,9 @@ import uuid
 from urllib.parse import parse_qsl
 
 from fastapi import Request, Security
-from fastapi.responses import Response
 from fastapi.security import APIKeyHeader, HTTPBearer
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.access.keys import ApiKeys, InvalidKeys, presented_key, read_keys
 from service.access.ratelimit import RequestRate, TooManyRequests
@@ -131,29 +132,45 @@ def request_id(request: Request) -> str:
     return given if REQUEST_ID.fullmatch(given) else uuid.uuid4().hex
 
 
-async def guard(request: Request, call_next) -> Response:
+class Guard:
     """Middleware: the request id, the caller (request.state.caller) or its refusal, the browser
     headers, and one access log line (method, path without the query, status, ms, caller)."""
-    t0 = time.perf_counter()
-    rid = request_id(request)
-    request.state.request_id = rid
-    try:
-        request.state.caller = caller = request.app.state.access.caller(request)
-    except ApiError as refusal:
-        caller = "refused"
-        response = error_response(refusal)
-    else:
-        response = await call_next(request)
-    response.headers["X-Request-ID"] = rid
-    for name, value in SECURITY_HEADERS.items():
-        response.headers.setdefault(name, value)
-    log.info(
-        "%s %s %s %d %.1f ms %s",
-        rid,
-        request.method,
-        request.url.path,
-        response.status_code,
-        1000 * (time.perf_counter() - t0),
-        caller,
-    )
-    return response
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        request = Request(scope)
+        rid = request.state.request_id = request_id(request)
+        status = 500  # when the app raises before it answers (the metrics middleware answers)
+
+        async def send_marked(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                headers = MutableHeaders(scope=message)
+                headers["X-Request-ID"] = rid
+                for name, value in SECURITY_HEADERS.items():
+                    headers.setdefault(name, value)
+            await send(message)
+
+        try:
+            request.state.caller = caller = scope["app"].state.access.caller(request)
+        except ApiError as refusal:
+            caller = "refused"
+            await error_response(refusal)(scope, receive, send_marked)
+        else:
+            await self.app(scope, receive, send_marked)
+        log.info(
+            "%s %s %s %d %.1f ms %s",
+            rid,
+            request.method,
+            request.url.path,
+            status,
+            1000 * (time.perf_counter() - t0),
+            caller,
+        )

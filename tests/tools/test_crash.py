@@ -89,10 +89,14 @@ def test_a_replica_killed_under_load_loses_no_request(replicas, load_inputs, tmp
     args += ["--poses", str(poses), "--images", str(images), "--out", str(tmp_path / "out")]
     assert crashtest.main(args) == 0
     result = json.loads((tmp_path / "out" / "crashtest.json").read_text())
-    # without the SDK's retries: nginx passed every request the dead replica dropped or refused
-    # to the live one
-    assert result["sent"] > 20 and result["failed"] == 0, result["by_status"]
-    assert result["answered_200"] == result["sent"], result["by_status"]
+    # Without the SDK's retries: nginx passed every request the dead replica refused, or dropped
+    # before answering, to the live one. What no balancer can pass on is an answer whose head it
+    # had forwarded when the kill cut its body; the app writes head and body in one step of its
+    # event loop (service.app's middlewares), so at most one answer can be caught between them
+    # (the SDK's retries resend it).
+    cut = result["by_status"].get("failed:RemoteProtocolError", 0)
+    assert result["sent"] > 20 and cut <= 1, result["by_status"]
+    assert result["answered_200"] + cut == result["sent"], result["by_status"]
     assert result["by_phase"]["down"].get("200", 0) > 0, result["by_phase"]
     # restarted by its supervisor as a new process, ready, and given traffic again
     assert result["ready_again_after_s"] is not None
