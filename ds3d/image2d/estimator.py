@@ -285,7 +285,7 @@ class PoseEstimator2D:
 
     def _first_trees(self, k: int | None) -> list[Forest]:
         """The layers cut to their first k trees (None: all), made once per k (a new Forest
-        converts its node reads again, Forest.node_reads)."""
+        converts its node reads again, Forest.node_table)."""
         if k is None:
             return self.layers
         if k not in self._layers_of:

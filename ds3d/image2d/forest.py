@@ -52,14 +52,14 @@ class Forest:
         return len(self.roots)
 
     @cached_property
-    def node_reads(self) -> tuple[torch.Tensor, ...]:
-        """(N,) int32 each: channel, dy, dx of every node's first read, then of its second
-        (features.second_reads), then the left child and the threshold's float32 bits. What
+    def node_table(self) -> torch.Tensor:
+        """(N, 8) int32, one row per node: the channel, dy, dx of its first read, then of its
+        second (features.second_reads), the left child and the threshold's float32 bits. What
         traverse needs on every call, converted once: redoing it cost ~8 ms per call for a
         16-tree layer, a third of a single image's time."""
         first = (self.channel.int(), self.dy1.int(), self.dx1.int())
         second = second_reads(first[0], self.dy2.int(), self.dx2.int(), self.use2, self.n_channels)
-        return (*first, *second, self.left.int(), self.threshold.view(torch.int32))
+        return torch.stack((*first, *second, self.left.int(), self.threshold.view(torch.int32)), 1)
 
     def first_trees(self, k: int) -> Forest:
         """The forest of its first k trees (the node and leaf rows of a tree follow those of the
@@ -104,21 +104,29 @@ def traverse(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> t
         raise ValueError(f"{c1 - 1} channels for a forest on {forest.n_channels}")
     r = forest.radius
     flat = padded.reshape(-1)
-    ch1, dy1, dx1, ch2, dy2, dx2, left, bits = forest.node_reads
-    # One int32 row per node: both reads' flat offsets, the left child, the threshold's bits.
-    shape = (c1, hp, wp)
-    table = torch.stack(
-        [read_offsets(ch1, dy1, dx1, shape), read_offsets(ch2, dy2, dx2, shape), left, bits], 1
-    )
     pix = (positions[..., 0] + r) * wp + positions[..., 1] + r  # (P,) or (B, P)
     n_pix = pix.shape[-1]
     start = (torch.arange(b) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(-1, 1, n_pix)
     start = start.expand(b, forest.n_trees, -1).reshape(-1).int()
     node = forest.roots.view(1, -1, 1).expand(b, -1, n_pix).reshape(-1).int()
+    table = forest.node_table
+
+    def flat_offsets(rows: torch.Tensor) -> torch.Tensor:
+        """(M, 6) two reads' (channel, dy, dx) -> (M, 2) their flat offsets from the pixel."""
+        reads = rows.view(-1, 2, 3)
+        return read_offsets(reads[..., 0], reads[..., 1], reads[..., 2], (c1, hp, wp))
+
+    # The reads' offsets depend on the image's size. With fewer reads to make than the forest
+    # has nodes (one small image: about 6,000 walkers), each step converts its walkers' own
+    # rows; otherwise one table of offsets for every node, made per call, is cheaper.
+    each_step = len(start) * forest.depth < len(table)
+    if not each_step:
+        table = torch.cat((flat_offsets(table[:, :6]), table[:, 6:]), 1)
     for _ in range(forest.depth):
         row = table.index_select(0, node)
-        v = flat.index_select(0, start + row[:, 0]) - flat.index_select(0, start + row[:, 1])
-        node = row[:, 2] + (v > row[:, 3].view(torch.float32))
+        reads = flat_offsets(row[:, :6]) if each_step else row[:, :2]
+        v = flat.index_select(0, start + reads[:, 0]) - flat.index_select(0, start + reads[:, 1])
+        node = row[:, -2] + (v > row[:, -1].view(torch.float32))
     return node.view(b, forest.n_trees, -1).long()
 
 

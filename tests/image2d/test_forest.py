@@ -59,8 +59,15 @@ def test_traversal_matches_reference_walk_exactly():
     h, w = channels.shape[2:]
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     positions = torch.stack([yy.reshape(-1), xx.reshape(-1)], 1)
-    leaves = traverse(forest, ft.pad_channels(channels, RADIUS), positions)  # (B, T, P)
+    padded = ft.pad_channels(channels, RADIUS)
+    leaves = traverse(forest, padded, positions)  # (B, T, P)
     assert leaves.shape == (2, 4, h * w)
+    # A few walkers convert their own reads at each step (many convert one table per call):
+    # the same leaves.
+    for i in (0, 57, h * w - 1):
+        np.testing.assert_array_equal(
+            traverse(forest, padded, positions[i : i + 1]), leaves[..., i : i + 1]
+        )
     offsets = forest.roots.tolist()
     for b in range(2):
         arr = channels[b].numpy()
