@@ -57,6 +57,17 @@ def visibility_batch(visible, batch: int) -> torch.Tensor:
     return v
 
 
+def focal_length(focal_px) -> float:
+    """A focal length in px, checked: finite, at least MIN_FOCAL_PX, within MAX_COORDINATE_PX."""
+    value = float(focal_px)
+    if not MIN_FOCAL_PX <= value <= MAX_COORDINATE_PX:  # NaN fails too
+        raise InvalidPose(
+            f"focal_px: need a focal length of {MIN_FOCAL_PX:g} to {MAX_COORDINATE_PX:g} px, "
+            f"got {focal_px}"
+        )
+    return value
+
+
 def intrinsics_batch(intrinsics, batch: int) -> torch.Tensor | None:
     """None or (B, 3, 3) / (3, 3) pinhole matrices -> (B, 3, 3) float32 with focal lengths of
     at least MIN_FOCAL_PX."""

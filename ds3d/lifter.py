@@ -25,7 +25,13 @@ from pathlib import Path
 import torch
 
 from ds3d.fit.bones import bone_lengths
-from ds3d.fit.camera import CameraFrame, image_frame, project, rotation_matrix
+from ds3d.fit.camera import (
+    CameraFrame,
+    camera_translation,
+    image_frame,
+    project,
+    rotation_matrix,
+)
 from ds3d.fit.energy import projection_energy
 from ds3d.fit.selection import set_energy, top_weighted
 from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
@@ -139,6 +145,9 @@ class LiftResult:
     the person's (LifterConfig.proportions) or the database's. joint_set: the chosen set per
     pose. energy: (B,) the chosen set's eq:energyS value. set_energies: (B, S), inf for a set
     not scored (LifterConfig.partial_sets). projection: (B, 6) M^ (ds3d.fit.camera).
+    root_position: (B, 3) float32 mm, the hip midpoint in camera coordinates (joints_3d +
+    root_position: the joints there), placed by M^ (ds3d.fit.camera.camera_translation) with
+    the intrinsics given, or else the `camera` given; None with neither.
     timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
@@ -147,6 +156,7 @@ class LiftResult:
     energy: torch.Tensor
     set_energies: torch.Tensor
     projection: torch.Tensor
+    root_position: torch.Tensor | None
     timings_ms: dict[str, float]
 
 
@@ -194,12 +204,20 @@ class Lifter:
         return cls(PoseDatabase.load(require_models(directory / database)), config, device)
 
     @torch.inference_mode()  # no autograd anywhere: a third less overhead per op at batch 1
-    def lift(self, joints_2d, visible=None, intrinsics=None) -> LiftResult:
+    def lift(self, joints_2d, visible=None, intrinsics=None, camera=None) -> LiftResult:
         """joints_2d: (B, 14, 2) px, LSP order; visible: optional (B, 14) bool; intrinsics:
-        optional (B, 3, 3) (without: weak perspective). Raises ds3d.errors.InvalidPose.
+        optional (B, 3, 3) (without: weak perspective); camera: optional (B, 3, 3), without
+        intrinsics the camera in whose coordinates to place the people (root_position), e.g.
+        an assumed one (ds3d.fit.camera.pinhole). Raises ds3d.errors.InvalidPose.
         Every stage runs on the (pose, set) problems that config.partial_sets scores, each
         stage once for all of them."""
         query = self.query(joints_2d, visible, intrinsics)
+        placed_by = query.frame.intrinsics
+        if (
+            placed_by is None
+            and (given := intrinsics_batch(camera, len(query.joints_2d))) is not None
+        ):
+            placed_by = given.to(self.device)
         timings: dict[str, float]
         problems, timings = self.problems(query), {}
         found = self.neighbours(problems, timings=timings)
@@ -208,7 +226,7 @@ class Lifter:
             energy = self.set_energies(kept, weights, kept_residuals, found.params, problems)
             chosen, energies = self.choose(problems, energy)
         with stage_timer(timings, "pose_fit", self.device):
-            pose, projection = self.fit_pose(
+            pose, projection, root = self.fit_pose(
                 kept[chosen], weights[chosen], found.params[chosen], problems.take(chosen)
             )
         return LiftResult(
@@ -218,6 +236,9 @@ class Lifter:
             energy=energy[chosen].cpu(),
             set_energies=energies.cpu(),
             projection=projection.cpu(),
+            root_position=None
+            if placed_by is None
+            else self.root_position(root, projection, query.frame, placed_by).cpu(),
             timings_ms=timings,
         )
 
@@ -356,7 +377,8 @@ class Lifter:
     def fit_pose(self, kept, weights, params, problems: Problems):
         """eq:energyMin2 of one problem per pose (its chosen set): kept (B, K_w, 14, 3), weights
         (B, K_w), params (B, 6). Returns the pose (B, 14, 3) mm, camera-oriented, root at the
-        hip midpoint, with the person's proportions, and its projection (B, 6)."""
+        hip midpoint, with the person's proportions, its projection (B, 6), and where its hip
+        midpoint lies from the origin that the projection places (B, 3) mm (root_position)."""
         pose, projection = fit_pose(
             kept,
             weights,
@@ -370,4 +392,13 @@ class Lifter:
             self.config.proportions,
         )
         oriented = pose @ rotation_matrix(projection[:, :3]).transpose(-1, -2)
-        return oriented - hip_midpoint(oriented)[:, None], projection
+        root = hip_midpoint(oriented)
+        return oriented - root[:, None], projection, root
+
+    @staticmethod
+    def root_position(
+        root: torch.Tensor, projection: torch.Tensor, frame: CameraFrame, camera: torch.Tensor
+    ) -> torch.Tensor:
+        """The hip midpoint in the coordinates of `camera` (B, 3, 3), mm (B, 3): fit_pose's root
+        (B, 3) moved by its projection (B, 6) fitted in `frame`."""
+        return root + camera_translation(projection[:, 3:], frame, camera)

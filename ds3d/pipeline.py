@@ -40,13 +40,14 @@ import torch
 from ds3d.boxes import checked_box, person_boxes, shared_joints, suppress
 from ds3d.confidence import FILE_NAME as CALIBRATION_FILE
 from ds3d.confidence import JointCalibration
-from ds3d.fit.camera import project
+from ds3d.fit.camera import pinhole, project
 from ds3d.fit.energy import projection_energy
 from ds3d.image2d.crops import crop_region
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
 from ds3d.image2d.search import Proposals, SearchParams, person_probability
+from ds3d.inputs import focal_length
 from ds3d.lifter import Lifter, LifterConfig, Problems, Query
 from ds3d.refine import RefineParams, refine
 from ds3d.result import PipelineResult
@@ -157,23 +158,31 @@ class Pipeline:
         iterations: int | None = None,
         people: str | Sequence[str] = "best",
         min_score: float | Sequence[float] = MIN_SCORE,
+        focal_px: float | Sequence[float | None] | None = None,
     ) -> PipelineResult:
         """2D and 3D poses of the people in B images.
 
         images: B arrays (H_i, W_i, 3) uint8 RGB; bboxes: None or B entries, each None or a
         person box (x0, y0, x1, y1) px: an image with a box is estimated in it, one without is
         searched for people (ds3d.image2d.search); intrinsics: None (weak perspective) or
-        (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations.
+        (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations;
+        focal_px: without intrinsics, the focal length of the camera that took the images, for
+        every image or one per image, which places the people in its coordinates
+        (PipelineResult.root_position; None: an assumed one, ds3d.fit.camera.ASSUMED_FOV_DEG).
         people: "best", one person per image (PipelineResult.person_found says whether anybody
         scored min_score), or "all", every person scoring at least min_score (none for an image
         without people); people and min_score are for every image or one per image. Only the
         people answered are lifted, so an image's answer is the same whichever other images,
         asking whatever, share its call (up to the 3D stage's rounding, which depends on how
         many people are lifted together). Raises InvalidImage, InvalidBox
-        (ds3d.boxes.checked_box), InvalidPose (bad intrinsics) or ValueError (bad people or
-        min_score).
+        (ds3d.boxes.checked_box), InvalidPose (bad intrinsics or focal_px) or ValueError (bad
+        people or min_score).
         """
         images = list(images)
+        focal = [
+            None if f is None else focal_length(f)
+            for f in _per_image(focal_px, len(images), "focal_px")
+        ]
         people, min_score = _people_asked(people, min_score, len(images))
         boxes = _checked_boxes(images, bboxes)
         t_start = time.perf_counter()
@@ -182,10 +191,16 @@ class Pipeline:
         estimate = self.estimate_2d(images, candidates)
         answered, found = self.answered(candidates, estimate, people, min_score)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)[answered]
+        camera = None  # without intrinsics, the camera that places the people
         if intrinsics is not None:
             intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
             intrinsics = intrinsics[image_index] if intrinsics.ndim == 3 else intrinsics
-        result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations)
+        elif len(image_index):
+            sizes = [(i, *images[i].shape[1::-1]) for i in image_index.tolist()]
+            camera = torch.stack([pinhole(w, h, focal[i]) for i, w, h in sizes])
+        result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations, camera)
+        assumed = [intrinsics is None and focal[i] is None for i in image_index.tolist()]
+        result.focal_assumed = torch.tensor(assumed, dtype=torch.bool)
         result.image_index = image_index
         result.person_found = found[answered]
         result.timings_ms = {"search": round(search_ms, 3), **result.timings_ms}
@@ -286,10 +301,12 @@ class Pipeline:
 
     @torch.inference_mode()
     def lift_estimate(
-        self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None
+        self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None, camera=None
     ) -> PipelineResult:
         """Everything after the 2D stage, on its result for B people (arguments as estimate):
-        lets a caller run several configurations on one 2D estimate."""
+        lets a caller run several configurations on one 2D estimate. camera: without
+        intrinsics, optional (B, 3, 3) intrinsics in whose coordinates to place the people
+        (without either, root_position is NaN)."""
         cfg = self.config
         if iterations is not None:
             cfg = dataclasses.replace(cfg, iterations=iterations)
@@ -317,7 +334,17 @@ class Pipeline:
         assert best is not None  # cfg.iterations >= 1 (PipelineConfig)
         with stage_timer(timings, "pose_fit", dev):
             chosen = lifter.problems(query, best.joint_set)
-            pose, _ = lifter.fit_pose(best.kept, best.weights, best.params, chosen)
+            pose, projection, root = lifter.fit_pose(best.kept, best.weights, best.params, chosen)
+        frame = chosen.own.frame
+        placed_by = frame.intrinsics
+        if placed_by is None and camera is not None:
+            placed_by = torch.as_tensor(camera, dtype=torch.float32, device=dev)
+        if placed_by is None:
+            root_position = torch.full_like(root, torch.nan)
+            focal = torch.full_like(root[:, 0], torch.nan)
+        else:
+            root_position = lifter.root_position(root, projection, frame, placed_by)
+            focal = (placed_by[:, 0, 0] + placed_by[:, 1, 1]) / 2
         x = query.joints_2d
         probability = (est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS).clamp(0.0, 1.0)
         if self.joint_calibration is not None:
@@ -331,6 +358,9 @@ class Pipeline:
             joints_2d_initial=first.joints_2d.cpu(),
             joints_2d_iterations=torch.stack(history, 1).cpu(),
             joints_3d=pose.detach().cpu(),
+            root_position=root_position.cpu(),
+            focal_px=focal.cpu(),
+            focal_assumed=torch.zeros(len(joints_2d), dtype=torch.bool),
             confidence=probability.cpu(),
             facing_camera=estimate.facing_camera.cpu(),
             joint_set=lifter.set_names(best.joint_set),
@@ -396,8 +426,9 @@ class Pipeline:
 
 
 def _per_image(value, n: int, name: str) -> list:
-    """A per-image option given once for every image (a str or a number) or as n values."""
-    if isinstance(value, str | int | float):
+    """A per-image option given once for every image (a str, a number or None) or as n
+    values."""
+    if value is None or isinstance(value, str | int | float):
         return [value] * n
     values = list(value)
     if len(values) != n:

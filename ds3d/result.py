@@ -20,8 +20,10 @@ class Person:
     box: (4,) float32 x0, y0, x1, y1 px, the box of its joints. score: P(a person) in [0, 1].
     person_found: the score at least min_score, or a box was given. joints_2d: (14, 2) float32
     px, the refined pose; joints_2d_initial: (14, 2), the 2D stage's. joints_3d: (14, 3) float32
-    mm, camera-oriented, root at the hip midpoint. confidence: (14,) float32 in [0, 1], P(the
-    joint lies within PCK@0.2 of the truth) (ds3d.confidence).
+    mm, camera-oriented, root at the hip midpoint. root_position: (3,) float32 mm, the hip
+    midpoint in camera coordinates (NaN where no camera was known), placed with focal length
+    focal_px, the camera's or, when focal_assumed, an assumed one. confidence: (14,) float32 in
+    [0, 1], P(the joint lies within PCK@0.2 of the truth) (ds3d.confidence).
     facing_camera: P(faces the camera); below 0.5 its left and right were swapped. joint_set:
     the chosen set. psm_energy: (T,) float32, after each iteration.
     """
@@ -32,19 +34,29 @@ class Person:
     joints_2d: np.ndarray
     joints_2d_initial: np.ndarray
     joints_3d: np.ndarray
+    root_position: np.ndarray
+    focal_px: float
+    focal_assumed: bool
     confidence: np.ndarray
     facing_camera: float
     joint_set: str
     psm_energy: np.ndarray
 
+    @property
+    def joints_3d_camera(self) -> np.ndarray:
+        """(14, 3) float32 mm, the joints in camera coordinates: joints_3d + root_position."""
+        return self.joints_3d + self.root_position
+
     def to_json(self) -> dict:
-        """JSON-ready: every field, arrays as lists, and the number of iterations run."""
+        """JSON-ready: every field, arrays as lists, the joints in camera coordinates and the
+        number of iterations run."""
         out = {
             f.name: value.tolist() if isinstance(value, np.ndarray) else value
             for f in dataclasses.fields(self)
             for value in [getattr(self, f.name)]
         }
-        return out | {"iterations": len(self.psm_energy)}
+        extra = {"joints_3d_camera": self.joints_3d_camera.tolist()}
+        return out | extra | {"iterations": len(self.psm_energy)}
 
 
 @dataclass
@@ -64,6 +76,14 @@ class PipelineResult:
     joints_2d_iterations: (N, T, 14, 2) float32 px, x^ after each iteration.
     joints_3d: (N, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the camera),
         root at the hip midpoint.
+    root_position: (N, 3) float32 mm, the hip midpoint in the coordinates of the camera (x right,
+        y down, z its depth): joints_3d + root_position are the joints there. Placed by the 3D
+        fit's projection (ds3d.fit.camera.camera_translation) with the intrinsics given, or else a
+        camera of focal length focal_px at the image's centre; NaN where no camera was known
+        (Pipeline.lift_estimate called without one).
+    focal_px: (N,) float32 px, the focal length (mean of f_x, f_y) of that camera.
+    focal_assumed: (N,) bool, focal_px was assumed (ds3d.fit.camera.ASSUMED_FOV_DEG) rather than
+        given (intrinsics or focal_px).
     confidence: (N, 14) float32 in [0, 1], the probability that the joint lies within PCK@0.2 of
         the truth (ds3d.confidence; with a model without joint_calibration.json, the 2D stage's
         probability at x^, which is not).
@@ -82,6 +102,9 @@ class PipelineResult:
     joints_2d_initial: torch.Tensor
     joints_2d_iterations: torch.Tensor
     joints_3d: torch.Tensor
+    root_position: torch.Tensor
+    focal_px: torch.Tensor
+    focal_assumed: torch.Tensor
     confidence: torch.Tensor
     facing_camera: torch.Tensor
     joint_set: list[str]
@@ -102,6 +125,9 @@ class PipelineResult:
             joints_2d_initial=torch.zeros(n, j, 2),
             joints_2d_iterations=torch.zeros(n, iterations, j, 2),
             joints_3d=torch.zeros(n, j, 3),
+            root_position=torch.zeros(n, 3),
+            focal_px=torch.zeros(n),
+            focal_assumed=torch.zeros(n, dtype=torch.bool),
             confidence=torch.zeros(n, j),
             facing_camera=torch.zeros(n),
             joint_set=[],
@@ -136,6 +162,9 @@ class PipelineResult:
             joints_2d=self.joints_2d[i].numpy(),
             joints_2d_initial=self.joints_2d_initial[i].numpy(),
             joints_3d=self.joints_3d[i].numpy(),
+            root_position=self.root_position[i].numpy(),
+            focal_px=float(self.focal_px[i]),
+            focal_assumed=bool(self.focal_assumed[i]),
             confidence=self.confidence[i].numpy(),
             facing_camera=float(self.facing_camera[i]),
             joint_set=self.joint_set[i],

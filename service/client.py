@@ -59,6 +59,9 @@ class LiftResult:
     bone_names: list[str]
     model: str
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # (B, 3) float32 mm: the hip midpoints in the camera's coordinates of the poses sent with
+    # intrinsics (NaN rows for the others); None when none was
+    root_position: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,12 @@ class PoseResult:
     box: np.ndarray | None = None  # (4,) float32 x0, y0, x1, y1 pixels, the joints' box
     score: float | None = None  # probability in [0, 1] that it is a person
     person_found: bool = True  # estimate(): false when nobody scored min_score
+    # Where the person stands: the hip midpoint (3,) float32 mm in the camera's coordinates,
+    # the joints there (14, 3), and the focal length (px) that placed them, assumed or given.
+    root_position: np.ndarray | None = None
+    joints_3d_camera: np.ndarray | None = None
+    focal_px: float | None = None
+    focal_assumed: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -170,11 +179,14 @@ class _Protocol:
         intrinsics=None,
         people: str = "best",
         min_score: float | None = None,
+        focal_px: float | None = None,
     ) -> _Request:
         data, ctype = _image_bytes(image)
         query: dict = {"people": people}
         if min_score is not None:
             query["min_score"] = float(min_score)
+        if focal_px is not None:
+            query["focal_px"] = float(focal_px)
         form = {}
         if bbox is not None:
             form["bbox"] = str(np.asarray(bbox, dtype=np.float64).reshape(4).tolist())
@@ -209,6 +221,7 @@ class _Protocol:
             bone_names=list(body["bone_names"]),
             model=body["model"],
             timings_ms=dict(body.get("timings_ms", {})),
+            root_position=_placed_roots(items),
         )
 
     def parse_pose(self, resp: httpx.Response) -> PoseResult:
@@ -234,6 +247,19 @@ class _Protocol:
         return min(self.max_backoff_s, hinted) if hinted is not None else backoff
 
 
+def _placed_roots(items: list[dict]) -> np.ndarray | None:
+    """/v1/lift items' root positions (B, 3), NaN for an item without; None if none has one."""
+    roots = [it.get("root_position") for it in items]
+    if all(root is None for root in roots):
+        return None
+    return np.asarray([[np.nan] * 3 if r is None else r for r in roots], dtype=np.float32)
+
+
+def _array_or_none(person: dict, name: str) -> np.ndarray | None:
+    """A field of a person as a float32 array, or None from a server that does not answer it."""
+    return np.asarray(person[name], dtype=np.float32) if name in person else None
+
+
 def _person(person: dict, body: dict, found: bool) -> PoseResult:
     """One person of a /v1/pose answer (`body`: its shared fields)."""
     return PoseResult(
@@ -248,6 +274,10 @@ def _person(person: dict, body: dict, found: bool) -> PoseResult:
         box=np.asarray(person["box"], dtype=np.float32) if "box" in person else None,
         score=float(person["score"]) if "score" in person else None,
         person_found=found,
+        root_position=_array_or_none(person, "root_position"),
+        joints_3d_camera=_array_or_none(person, "joints_3d_camera"),
+        focal_px=float(person["focal_px"]) if "focal_px" in person else None,
+        focal_assumed=bool(person["focal_assumed"]) if "focal_assumed" in person else None,
     )
 
 
@@ -300,17 +330,25 @@ class PoseClient:
         req = self._proto.lift_request(joints_2d, intrinsics, visible)
         return self._send(req, self._proto.parse_lift)
 
-    def estimate(self, image: ImageLike, bbox=None, intrinsics=None) -> PoseResult:
+    def estimate(
+        self, image: ImageLike, bbox=None, intrinsics=None, focal_px: float | None = None
+    ) -> PoseResult:
         """image: a path, image file bytes, or an (H, W, 3) uint8 RGB array; bbox (4,) x0, y0,
-        x1, y1 pixels; intrinsics (3, 3)."""
-        return self._send(self._proto.pose_request(image, bbox, intrinsics), self._proto.parse_pose)
+        x1, y1 pixels; intrinsics (3, 3); focal_px: without intrinsics, the camera's focal
+        length in pixels, which places the person (PoseResult.root_position; default assumed)."""
+        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px)
+        return self._send(req, self._proto.parse_pose)
 
     def find_people(
-        self, image: ImageLike, intrinsics=None, min_score: float | None = None
+        self,
+        image: ImageLike,
+        intrinsics=None,
+        min_score: float | None = None,
+        focal_px: float | None = None,
     ) -> list[PoseResult]:
         """Every person in the image scoring at least min_score (default: the server's),
         best first; [] when nobody does."""
-        req = self._proto.pose_request(image, None, intrinsics, "all", min_score)
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px)
         return self._send(req, self._proto.parse_people)
 
     def estimate_many(self, images: Iterable[ImageLike], concurrency: int = 8) -> list[PoseResult]:
@@ -370,14 +408,20 @@ class AsyncPoseClient:
         req = self._proto.lift_request(joints_2d, intrinsics, visible)
         return await self._send(req, self._proto.parse_lift)
 
-    async def estimate(self, image: ImageLike, bbox=None, intrinsics=None) -> PoseResult:
-        req = self._proto.pose_request(image, bbox, intrinsics)
+    async def estimate(
+        self, image: ImageLike, bbox=None, intrinsics=None, focal_px: float | None = None
+    ) -> PoseResult:
+        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px)
         return await self._send(req, self._proto.parse_pose)
 
     async def find_people(
-        self, image: ImageLike, intrinsics=None, min_score: float | None = None
+        self,
+        image: ImageLike,
+        intrinsics=None,
+        min_score: float | None = None,
+        focal_px: float | None = None,
     ) -> list[PoseResult]:
-        req = self._proto.pose_request(image, None, intrinsics, "all", min_score)
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px)
         return await self._send(req, self._proto.parse_people)
 
     async def estimate_many(

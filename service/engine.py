@@ -18,7 +18,7 @@ import torch
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.search import check_searchable
-from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
+from ds3d.inputs import focal_length, intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.lifter import Lifter
 from ds3d.pipeline import MIN_SCORE, Pipeline
 from ds3d.result import Person
@@ -38,6 +38,7 @@ class PoseInput:
     intrinsics: np.ndarray | None  # (3, 3) float32
     people: str = "best"  # ds3d.pipeline.PEOPLE
     min_score: float = MIN_SCORE
+    focal_px: float | None = None  # without intrinsics; None: an assumed camera
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,7 @@ class LiftOutput:
     bone_lengths: np.ndarray  # (14,) float32, mm, ds3d.skeleton.BONE_NAMES order
     joint_set: str
     energy: float
+    root_position: np.ndarray | None  # (3,) float32 mm in the camera's coordinates (intrinsics)
     batch: BatchInfo
 
 
@@ -147,17 +149,27 @@ class Engine:
             info = self._batch_info(len(idx), res.timings_ms)
             joints_3d, bones = _numpy(res.joints_3d), _numpy(res.bone_lengths)
             energy = _numpy(res.energy)
+            roots = None if res.root_position is None else _numpy(res.root_position)
             for j, i in enumerate(idx):
-                set_name = res.joint_set[j]
-                out[i] = LiftOutput(joints_3d[j], bones[j], set_name, float(energy[j]), info)
+                out[i] = LiftOutput(
+                    joints_3d[j],
+                    bones[j],
+                    res.joint_set[j],
+                    float(energy[j]),
+                    None if roots is None else roots[j],
+                    info,
+                )
         return out  # type: ignore[return-value]
 
     def check_pose_input(self, item: PoseInput) -> None:
         """The library's own checks of an image's inputs, made before it is queued, so that a
-        bad one is refused at once and never fails a batch: InvalidPose for intrinsics that
-        are not a camera's, InvalidImage for an image too elongated to search for people."""
+        bad one is refused at once and never fails a batch: InvalidPose for intrinsics or a
+        focal length that are not a camera's, InvalidImage for an image too elongated to search
+        for people."""
         if item.intrinsics is not None:
             intrinsics_batch(item.intrinsics, 1)
+        if item.focal_px is not None:
+            focal_length(item.focal_px)
         if item.bbox is None and self.pipeline is not None:
             height, width = item.image.shape[:2]
             check_searchable(height, width, self.pipeline.config.search)
@@ -183,6 +195,7 @@ class Engine:
                 intrinsics=_stacked_intrinsics([items[i].intrinsics for i in idx]),
                 people=[items[i].people for i in idx],
                 min_score=[items[i].min_score for i in idx],
+                focal_px=[items[i].focal_px for i in idx],
             )
             info = self._batch_info(len(idx), res.timings_ms)
             for j, i in enumerate(idx):

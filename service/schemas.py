@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 import ds3d.result
+from ds3d.fit.camera import ASSUMED_FOV_DEG
 from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
 from ds3d.skeleton import NUM_JOINTS
 
@@ -63,6 +64,12 @@ class LiftResult(BaseModel):
     )
     joint_set: str = Field(description="the joint set the 3D pose was fitted with")
     energy: float = Field(description="the fit's final energy (lower fits better)")
+    root_position: Point3 | None = Field(
+        None,
+        description="with intrinsics, the hip midpoint as [x, y, z] millimetres in the camera's"
+        " coordinates (x right, y down, z away from the camera): joints_3d + root_position are"
+        " the joints there",
+    )
 
 
 class LiftResponse(BaseModel):
@@ -79,7 +86,26 @@ class Person(BaseModel):
     box: list[float] = Field(description="[x0, y0, x1, y1] pixels, the box of the joints")
     score: float = Field(description="probability in [0, 1] that this is a person")
     joints_2d: list[Point2] = Field(description="14 joints as [x, y] pixels of the input image")
-    joints_3d: list[Point3] = Field(description="14 joints as [x, y, z] millimetres")
+    joints_3d: list[Point3] = Field(
+        description="14 joints as [x, y, z] millimetres, camera-oriented (x right, y down, z away"
+        " from the camera), root at the hip midpoint"
+    )
+    root_position: Point3 = Field(
+        description="the hip midpoint as [x, y, z] millimetres in the camera's coordinates: where"
+        " the person stands, placed with focal length focal_px"
+    )
+    joints_3d_camera: list[Point3] = Field(
+        description="14 joints as [x, y, z] millimetres in the camera's coordinates: joints_3d +"
+        " root_position"
+    )
+    focal_px: float = Field(
+        description="the focal length, pixels, of the camera the people are placed by: the"
+        " intrinsics' or focal_px given, or an assumed one"
+    )
+    focal_assumed: bool = Field(
+        description=f"true when focal_px was assumed (a {ASSUMED_FOV_DEG:g}-degree field of view"
+        " across the image's longer side): depths then scale with the true focal length"
+    )
     confidence: list[float] = Field(
         description="per joint, the probability in [0, 1] that it lies within PCK@0.2 of the "
         "truth (0.2 times the torso's diagonal), calibrated on held-out LSP images"

@@ -16,6 +16,11 @@ RESCALED = {"pelvis": 0.5, "thigh": 1.1, "shin": 1.1, "upper_arm": 0.9, "head": 
 # in floating point and in the approximate index, not a real regression.
 SUBSET_POSE_ERROR_MM = 51.9
 MARGIN_MM = 4.0
+# The same subset placed in the camera: root position error 214.4 mm and camera-space MPJPE
+# 224.4 mm (224.4 and 234.1 mm on the full protocol), people about 5 m away.
+SUBSET_MRPE_MM = 214.4
+SUBSET_CAMERA_MPJPE_MM = 224.4
+PLACEMENT_MARGIN_MM = 25.0
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +33,27 @@ def test_accuracy_on_s11_with_ground_truth_2d_does_not_regress(lifter, cases):
     report = evaluate(lifter, cases)
     assert len(cases) > 250
     assert report["pose_error"] <= SUBSET_POSE_ERROR_MM + MARGIN_MM, report
+
+
+def test_people_are_placed_in_the_camera_where_they_stand(lifter, cases):
+    """With the camera's intrinsics, root_position is the hip midpoint in camera coordinates."""
+    report = evaluate(lifter, cases)
+    assert report["mrpe"] <= SUBSET_MRPE_MM + PLACEMENT_MARGIN_MM, report
+    assert report["camera_mpjpe"] <= SUBSET_CAMERA_MPJPE_MM + PLACEMENT_MARGIN_MM, report
+
+
+def test_the_smaller_of_two_people_in_one_photo_stands_further(lifter, cases):
+    """One pose drawn at full size and again at half its size around the same point, both placed
+    by one assumed camera (weak perspective): the half-size person stands twice as far."""
+    near = cases.joints_2d[:4]
+    centre = near.mean(1, keepdims=True)
+    far = centre + (near - centre) / 2
+    camera = np.array([[1000.0, 0, 500], [0, 1000, 500], [0, 0, 1]])
+    result = lifter.lift(np.concatenate([near, far]), camera=camera)
+    depth = result.root_position[:, 2]
+    assert bool((depth[4:] > depth[:4]).all()), depth
+    torch.testing.assert_close(depth[4:] / depth[:4], torch.full((4,), 2.0), rtol=0.1, atol=0)
+    assert lifter.lift(near).root_position is None  # no camera: nowhere to place them
 
 
 def test_output_is_camera_oriented_and_rooted_at_the_hips(lifter, cases):

@@ -72,6 +72,23 @@ def test_real_image_gives_finite_poses_of_the_right_shapes(pipeline, images):
     } <= set(res.timings_ms)
 
 
+def test_people_are_placed_in_front_of_the_camera_at_a_depth_its_focal_length_sets(
+    pipeline, images
+):
+    """Without intrinsics a photo's people are placed by an assumed camera (flagged so) or the
+    focal length given: twice the focal length, twice the depth, the same x and y (a weak-
+    perspective fit is drawn at the scale it fitted whatever the camera)."""
+    assumed = pipeline.estimate(images[:2])
+    assert bool(assumed.focal_assumed.all()) and bool((assumed.root_position[:, 2] > 0).all())
+    given = pipeline.estimate(images[:2], focal_px=600.0)
+    twice = pipeline.estimate(images[:2], focal_px=1200.0)
+    assert not bool(given.focal_assumed.any()) and given.focal_px.tolist() == [600.0, 600.0]
+    torch.testing.assert_close(twice.root_position[:, 2], 2 * given.root_position[:, 2])
+    torch.testing.assert_close(twice.root_position[:, :2], given.root_position[:, :2])
+    person = given.person(0)
+    np.testing.assert_allclose(person.joints_3d_camera, person.joints_3d + person.root_position)
+
+
 def test_further_iterations_never_raise_the_psm_energy(pipeline, images):
     res = pipeline.estimate(images, iterations=3)
     energy = res.psm_energy

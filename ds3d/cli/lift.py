@@ -79,6 +79,11 @@ def lift(args) -> int:
             "bone_lengths": result.bone_lengths.double().numpy().round(1).tolist(),
             "joint_set": result.joint_set,
             "energy": result.energy.tolist(),
+            **(
+                {}
+                if result.root_position is None
+                else {"root_position": result.root_position.double().numpy().round(1).tolist()}
+            ),
             "timings_ms": result.timings_ms,
         },
         args.out,
@@ -119,8 +124,9 @@ def eval_h36m(args) -> int:
         report["variants"][name] = result
         print(
             f"{name:>28}: 3D pose error {result['pose_error']:.1f} mm, PA-MPJPE "
-            f"{result['pa_mpjpe']:.1f}, MPJPE {result['mpjpe']:.1f} ({result['frames']} poses, "
-            f"{result['seconds']} s)",
+            f"{result['pa_mpjpe']:.1f}, MPJPE {result['mpjpe']:.1f}; placed in the camera: MRPE "
+            f"{result['mrpe']:.1f}, MPJPE {result['camera_mpjpe']:.1f} ({result['frames']} "
+            f"poses, {result['seconds']} s)",
             file=sys.stderr,
         )
     write_report(report, args.out)

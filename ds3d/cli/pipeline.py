@@ -12,6 +12,7 @@ import torch
 
 from ds3d.cli.parser import add_model_options, add_people_options, field_overrides, write_report
 from ds3d.evaluation.lsp import REFINEMENT_VARIANTS, evaluate_refinement
+from ds3d.fit.camera import ASSUMED_FOV_DEG
 
 
 def register(commands, evals, benches) -> None:
@@ -37,6 +38,12 @@ def register(commands, evals, benches) -> None:
         "searched for; the Python API and the service take corners x0, y0, x1, y1)",
     )
     p.add_argument("--iterations", type=int, default=None, help="default: 1 (the paper's: 2)")
+    p.add_argument(
+        "--focal-px",
+        type=float,
+        help="the camera's focal length in px, which places the people in its coordinates "
+        f"(root_position; default: a {ASSUMED_FOV_DEG:g}-degree field of view is assumed)",
+    )
     p.add_argument("--json", action="store_true", help="also OUT/json/: a JSON file per image")
     p.add_argument("--coco", action="store_true", help="also OUT/coco_keypoints.json")
     p.add_argument(
@@ -180,6 +187,7 @@ def predict(args) -> int:
             people=args.people,
             min_score=MIN_SCORE if args.min_score is None else args.min_score,
             iterations=args.iterations,
+            focal_px=args.focal_px,
             on_skip=skip,
         )
         try:

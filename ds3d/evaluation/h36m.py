@@ -29,10 +29,12 @@ from ds3d.util.progress import progress
 @dataclass
 class ProtocolCases:
     """N test poses. joints_2d (N, 14, 2) px; joints_3d (N, 14, 3) mm in the camera frame, root
-    at the hip midpoint; intrinsics (N, 3, 3); action (N,) names; camera (N,) 1-4."""
+    at the hip midpoint; roots (N, 3) mm, the hip midpoint in the camera frame; intrinsics
+    (N, 3, 3); action (N,) names; camera (N,) 1-4."""
 
     joints_2d: np.ndarray
     joints_3d: np.ndarray
+    roots: np.ndarray
     intrinsics: np.ndarray
     action: np.ndarray
     camera: np.ndarray
@@ -61,7 +63,9 @@ def protocol_cases(
             camera = cameras[(subject, cam_id)]
             in_camera = camera.to_camera(frames)
             parts["joints_2d"].append(camera.project(frames))
-            parts["joints_3d"].append(in_camera - hip_midpoint(in_camera)[:, None])
+            roots = hip_midpoint(in_camera)
+            parts["joints_3d"].append(in_camera - roots[:, None])
+            parts["roots"].append(roots)
             parts["intrinsics"].append(np.repeat(camera.intrinsics[None], len(frames), 0))
             parts["action"].append(np.full(len(frames), action_name(key.split("/")[1])))
             parts["camera"].append(np.full(len(frames), cam_id))
@@ -94,26 +98,41 @@ def perturb(
 def lift_all(
     lifter, cases: ProtocolCases, joints_2d: np.ndarray, batch_size: int = 64, desc: str = "lift"
 ):
-    """Lift every case in batches (a progress bar named `desc`). Returns the 3D poses
-    (N, 14, 3) and chosen sets (N,)."""
-    poses, sets = [], []
+    """Lift every case in batches (a progress bar named `desc`), with its camera's intrinsics.
+    Returns the 3D poses (N, 14, 3), their roots in camera coordinates (N, 3) and the chosen
+    sets (N,)."""
+    poses, roots, sets = [], [], []
     with progress(total=len(cases), desc=desc, unit="pose") as bar:
         for start in range(0, len(cases), batch_size):
             part = slice(start, start + batch_size)
             result = lifter.lift(joints_2d[part], intrinsics=cases.intrinsics[part])
+            assert result.root_position is not None  # placed by the intrinsics
             poses.append(result.joints_3d.numpy())
+            roots.append(result.root_position.numpy())
             sets.extend(result.joint_set)
             bar.update(len(poses[-1]))
-    return np.concatenate(poses), np.array(sets)
+    return np.concatenate(poses), np.concatenate(roots), np.array(sets)
 
 
-def score(pred: np.ndarray, cases: ProtocolCases, sets: np.ndarray | None = None) -> dict:
-    """Errors (mm) per action and overall (mean over frames) + how often each set was chosen."""
+def score(
+    pred: np.ndarray,
+    cases: ProtocolCases,
+    sets: np.ndarray | None = None,
+    roots: np.ndarray | None = None,
+) -> dict:
+    """Errors (mm) per action and overall (mean over frames) + how often each set was chosen.
+    With the predicted roots (N, 3) mm in camera coordinates also the people's placement: the
+    mean root position error (mrpe) and the camera-space MPJPE without any alignment."""
     errors = {
         "pose_error": rigid_error(pred, cases.joints_3d).numpy(),
         "pa_mpjpe": pa_mpjpe(pred, cases.joints_3d).numpy(),
         "mpjpe": mpjpe(pred, cases.joints_3d).numpy(),
     }
+    if roots is not None:
+        errors["mrpe"] = np.linalg.norm(roots - cases.roots, axis=-1)
+        placed = pred + roots[:, None]
+        truth = cases.joints_3d + cases.roots[:, None]
+        errors["camera_mpjpe"] = np.linalg.norm(placed - truth, axis=-1).mean(-1)
     report: dict = {name: float(v.mean()) for name, v in errors.items()}
     report["frames"] = len(cases)
     report["per_action"] = {
@@ -131,8 +150,8 @@ def evaluate(
 ):
     """The protocol end to end for one input variant: a JSON-ready report."""
     joints_2d = perturb(cases.joints_2d, noise_px, outlier_px, seed)
-    pred, sets = lift_all(lifter, cases, joints_2d, batch_size, desc)
-    return score(pred, cases, sets)
+    pred, roots, sets = lift_all(lifter, cases, joints_2d, batch_size, desc)
+    return score(pred, cases, sets, roots)
 
 
 # Variants of the protocol: (perturbation of the 2D input, LifterConfig overrides).

@@ -14,6 +14,7 @@ problem: params = (r (3): axis-angle rotation, a, b, w).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -112,10 +113,9 @@ def project_rotated(
     and with `jacobian` also d uv / d rotated (..., N, J, 2, 3) and d uv / d (a, b, w)
     (..., N, J, 2, 3).
     """
-    a, b, w = shift[..., 0:1], shift[..., 1:2], shift[..., 2:3]
     spread = frame.spread[..., None, None, None]  # (..., 1, 1, 1)
     if frame.intrinsics is None:
-        scale = spread * torch.exp(w)[..., None, None] / DEPTH_UNIT  # px per mm
+        scale = spread * torch.exp(shift[..., 2:3])[..., None, None] / DEPTH_UNIT  # px per mm
         image = scale * rotated[..., :2]  # (..., N, J, 2) px from the frame's origin
         uv = image + (frame.centre + frame.spread[..., None] * shift[..., :2])[..., None, None, :]
         if not jacobian:
@@ -125,9 +125,8 @@ def project_rotated(
         d_ab = (spread[..., None] * eye[:, :2]).expand(*uv.shape, 2)
         return uv, d_points, torch.cat([d_ab, image[..., None]], -1)  # d uv / d w = image
     focal, principal = _focal_principal(frame.intrinsics)
-    offset = torch.cat([a, b], -1) * frame.spread[..., None] / focal
-    depth = torch.exp(w) * DEPTH_UNIT
-    move = depth * torch.cat([offset, torch.ones_like(a)], -1)  # (..., 3) mm
+    move = camera_translation(shift, frame, frame.intrinsics)  # (..., 3) mm
+    depth = move[..., 2:3]
     cam = rotated + move[..., None, None, :]
     inverse_z = 1 / cam[..., 2:3].clamp_min(1.0)  # a point behind the camera must not flip sign
     f = focal[..., None, None, :]
@@ -143,6 +142,46 @@ def project_rotated(
     d_w = (f * move[..., None, None, :2] - image * move[..., None, None, 2:]) * inverse_z
     d_shift = torch.cat([torch.diag_embed(ab.expand_as(image)), d_w[..., None]], -1)
     return uv, d_points, d_shift
+
+
+def camera_translation(
+    shift: torch.Tensor, frame: CameraFrame, camera: torch.Tensor
+) -> torch.Tensor:
+    """T (..., 3) mm such that R X + T are the fitted points in the coordinates of `camera`
+    (x right, y down, z away from it): where M places the person in space.
+
+    shift: (..., 3) M's (a, b, w); camera: (..., 3, 3) the intrinsics K of the camera that took
+    the image (with perspective, frame.intrinsics).
+    - Perspective: T = depth (a spread / f_x, b spread / f_y, 1), depth = exp(w) DEPTH_UNIT: the
+      points that M projects.
+    - Weak perspective, an orthographic view at s = spread exp(w) / DEPTH_UNIT px per mm: X's
+      origin, which M draws at uv0 = centre + spread (a, b), at the depth Z = f / s at which the
+      camera's focal length f (the mean of f_x and f_y) draws a millimetre as s pixels:
+      T = Z ((uv0 - principal) / (f_x, f_y), 1).
+    """
+    focal, principal = _focal_principal(camera)
+    one = torch.ones_like(shift[..., :1])
+    if frame.intrinsics is not None:
+        depth = torch.exp(shift[..., 2:3]) * DEPTH_UNIT
+        return depth * torch.cat([shift[..., :2] * frame.spread[..., None] / focal, one], -1)
+    scale = frame.spread[..., None] * torch.exp(shift[..., 2:3]) / DEPTH_UNIT  # px per mm
+    depth = focal.mean(-1, keepdim=True) / scale
+    drawn_at = frame.centre + frame.spread[..., None] * shift[..., :2]  # uv0, px
+    return depth * torch.cat([(drawn_at - principal) / focal, one], -1)
+
+
+# The field of view, across the image's longer side, assumed for a photo whose camera is not
+# known: about a phone's or a compact camera's standard lens. A guess, not a fit: a person's
+# depth scales with the focal length, so callers who know theirs should pass it.
+ASSUMED_FOV_DEG = 55.0
+
+
+def pinhole(width: float, height: float, focal_px: float | None = None) -> torch.Tensor:
+    """(3, 3) intrinsics of a camera with square pixels and its principal point at the centre
+    of a width x height px image; focal_px None: the focal length of ASSUMED_FOV_DEG."""
+    if focal_px is None:
+        focal_px = max(width, height) / 2 / math.tan(math.radians(ASSUMED_FOV_DEG) / 2)
+    return torch.tensor([[focal_px, 0.0, width / 2], [0.0, focal_px, height / 2], [0.0, 0.0, 1.0]])
 
 
 def _focal_principal(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -122,14 +122,15 @@ def predict(
     people: str = "best",
     min_score: float = MIN_SCORE,
     iterations: int | None = None,
+    focal_px: float | None = None,
     device: str = "cpu",
     on_skip: Callable[[Frame], None] = _log_skip,
 ) -> Iterator[Prediction]:
     """A Prediction per readable image or frame of `sources`, in order, estimated `batch_size`
     at a time by `pipeline` (default: the bundled models, loaded once per process on `device`).
     stride: every n-th frame of a video or camera; bbox: one person box (x0, y0, x1, y1) px for
-    every image (default: people are searched for); people, min_score, iterations: as
-    Pipeline.estimate. Unreadable sources, images that cannot hold bbox and, without one,
+    every image (default: people are searched for); people, min_score, iterations, focal_px:
+    as Pipeline.estimate. Unreadable sources, images that cannot hold bbox and, without one,
     images too elongated to search go to `on_skip` (default: a logged warning)."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -142,6 +143,7 @@ def predict(
             iterations=iterations,
             people=people,
             min_score=min_score,
+            focal_px=focal_px,
         )
         for i, frame in enumerate(batch):
             yield Prediction(frame, result.people(i))

@@ -72,6 +72,7 @@ async def lift(
                 bone_lengths=o.bone_lengths.tolist(),
                 joint_set=o.joint_set,
                 energy=o.energy,
+                root_position=None if o.root_position is None else o.root_position.tolist(),
             )
             for o in outputs
         ],

@@ -8,6 +8,8 @@ from typing import Literal
 
 from fastapi import APIRouter, Query, Request
 
+from ds3d.fit.camera import ASSUMED_FOV_DEG
+from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
 from ds3d.pipeline import MIN_SCORE
 from ds3d.skeleton import JOINT_NAMES
 from service.deps import CallerDep, RuntimeHandleDep, SettingsDep
@@ -36,6 +38,15 @@ async def pose(
     min_score: float = Query(
         MIN_SCORE, ge=0.0, le=1.0, description="people scoring less are not answered"
     ),
+    focal_px: float | None = Query(
+        None,
+        ge=MIN_FOCAL_PX,
+        le=MAX_COORDINATE_PX,
+        description="without intrinsics, the focal length in pixels of the camera that took the"
+        " image, which places the people in its coordinates (root_position); without it a"
+        f" camera of a {ASSUMED_FOV_DEG:g}-degree field of view across the longer side is"
+        " assumed",
+    ),
 ) -> PoseResponse | PeopleResponse:
     """2D and 3D poses of the people in one image: multipart field `image`, or the raw image
     as the body with an image/* content type; `bbox` and `intrinsics` as JSON (query parameters
@@ -44,7 +55,7 @@ async def pose(
     so a bad image is reported whatever the deployment."""
     t0 = time.perf_counter()
     item = await read_pose_input(request, settings)
-    item = dataclasses.replace(item, people=people, min_score=min_score)
+    item = dataclasses.replace(item, people=people, min_score=min_score, focal_px=focal_px)
     rt = runtime.require()
     if rt.pose is None:
         raise ApiError(503, "model_unavailable", rt.engine.pose_unavailable or "no 2D stage")

@@ -5,6 +5,7 @@ from ds3d.fit import gauss_newton
 from ds3d.fit.bones import bone_lengths, bone_scales, bone_vectors, scaling_map
 from ds3d.fit.camera import (
     CameraFrame,
+    camera_translation,
     initial_params,
     project,
     rotation_matrix,
@@ -177,3 +178,36 @@ def test_weighted_pca_ignores_zero_weight_poses():
     torch.testing.assert_close(
         basis @ basis.transpose(-1, -2), torch.eye(4)[None], atol=1e-5, rtol=0
     )
+
+
+def _pinhole_projection(points: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """(B, J, 3) camera coordinates, (B, 3, 3) K -> (B, J, 2) px."""
+    image = points @ k.transpose(-1, -2)
+    return image[..., :2] / image[..., 2:]
+
+
+def test_a_perspective_fit_places_the_points_it_projects():
+    torch.manual_seed(0)
+    k = torch.tensor([[1100.0, 0, 500], [0, 1150.0, 480], [0, 0, 1]]).expand(4, 3, 3)
+    frame = CameraFrame(k, torch.zeros(4, 2), torch.full((4,), 80.0))
+    params = torch.cat(
+        [0.3 * torch.randn(4, 3), 0.5 * torch.randn(4, 2), 1.5 + 0.1 * torch.randn(4, 1)], -1
+    )
+    points = 300 * torch.randn(4, 1, 14, 3)
+    rotated = points[:, 0] @ rotation_matrix(params[:, :3]).transpose(-1, -2)
+    placed = rotated + camera_translation(params[:, 3:], frame, k)[:, None]
+    torch.testing.assert_close(
+        _pinhole_projection(placed, k), project(points, params, frame)[:, 0], atol=1e-3, rtol=0
+    )
+
+
+def test_a_weak_perspective_fit_is_placed_where_a_camera_draws_it_at_its_scale():
+    """X's origin lands where M draws it, at the depth where a millimetre spans M's pixels."""
+    frame = CameraFrame(None, torch.tensor([[320.0, 200.0]]), torch.tensor([60.0]))
+    params = torch.tensor([[0.1, -0.2, 0.3, 0.4, -0.7, 0.2]])
+    k = torch.tensor([[[900.0, 0, 300], [0, 900.0, 250], [0, 0, 1]]])
+    origin = camera_translation(params[:, 3:], frame, k)  # (1, 3)
+    step = torch.tensor([[[0.0, 0.0, 0.0], [10.0, -5.0, 0.0]]])  # mm, at the origin's depth
+    drawn = _pinhole_projection(origin[:, None] + step, k)[0]
+    weak = project(step[:, None] @ rotation_matrix(params[:, :3]), params, frame)[0, 0]
+    torch.testing.assert_close(drawn, weak, atol=1e-3, rtol=0)

@@ -107,6 +107,10 @@ def test_lift_with_intrinsics_matches_the_library(url, engine, poses):
         res = client.lift(poses[4:6], intrinsics=k)
     ref = engine.lifter.lift(poses[4:6], intrinsics=np.stack([k, k]))
     np.testing.assert_allclose(res.joints_3d, ref.joints_3d.numpy(), atol=1e-3)
+    assert ref.root_position is not None and res.root_position is not None
+    np.testing.assert_allclose(res.root_position, ref.root_position.numpy(), atol=1e-2)
+    with PoseClient(url) as client:
+        assert client.lift(poses[4:6]).root_position is None  # no camera, nowhere to place
 
 
 def test_concurrent_requests_share_batches(url, poses):
@@ -293,6 +297,12 @@ def test_pose_matches_the_pipeline(pose_engine, serving):
         assert res.joint_set == ref.joint_set[0] and res.confidence.shape == (14,)
         assert res.facing_camera == pytest.approx(float(ref.facing_camera[0]), abs=1e-6)
         assert {"2d_features", "total"} <= set(res.timings_ms)
+        # Placed by an assumed camera, or by the focal length given.
+        assert res.focal_assumed and res.root_position is not None
+        np.testing.assert_allclose(res.root_position, ref.root_position[0].numpy(), atol=1e-1)
+        np.testing.assert_allclose(res.joints_3d_camera, res.joints_3d + res.root_position)
+        given = client.estimate(path, focal_px=900.0)
+        assert given.focal_px == 900.0 and given.focal_assumed is False
         # Raw JPEG body, box and intrinsics as query parameters.
         params = {"bbox": json.dumps(box), "intrinsics": json.dumps(k)}
         raw = httpx.post(
