@@ -130,6 +130,15 @@ def register(commands, evals, benches) -> None:
     )
     p.add_argument("--count", type=int, default=200, help="canvases")
     p.add_argument("--seed", type=int, default=0, help="draws the canvases")
+    p.add_argument(
+        "--empty",
+        type=float,
+        default=0.0,
+        help="the share of canvases without people, filled from beside an LSP image's person",
+    )
+    p.add_argument(
+        "--cut", type=float, default=0.0, help="each person's chance to be cut by the canvas's edge"
+    )
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--save", type=Path, help="also write the canvases as PNG into this folder")
     p.add_argument("--out", type=Path, help="JSON report")
@@ -362,7 +371,7 @@ def eval_people(args) -> int:
     pipeline = load_pipeline(args)
     annotations = load_lsp(split=args.split)
     annotations = annotations.subset(range(args.start, len(annotations.image_paths)))
-    canvases = protocol(annotations, args.count, args.seed)
+    canvases = protocol(annotations, args.count, args.seed, args.empty, args.cut)
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
         for i, canvas in enumerate(canvases):
@@ -390,6 +399,8 @@ def eval_people(args) -> int:
         "split": args.split,
         "start": args.start,
         "seed": args.seed,
+        "empty": args.empty,
+        "cut": args.cut,
         "threads": args.threads,
         "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
@@ -403,6 +414,8 @@ def eval_people(args) -> int:
         report["by_min_score"][str(threshold)] = {
             "recall": {name: round(b["recall"], 4) for name, b in figures["bins"].items()},
             "precision": round(figures["all"]["precision"], 4),
+            "large": {name: round(v, 4) for name, v in figures["large"].items()},
+            "answers_on_empty_canvases": figures["answers_on_empty_canvases"],
         }
     write_report(report, args.out)
     return 0

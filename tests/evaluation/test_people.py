@@ -53,3 +53,28 @@ def test_score_counts_recall_precision_and_pck(data_dir):
     missed = score(canvases, shifted)
     assert missed["all"]["recall"] == 0 and missed["all"]["precision"] == 0
     assert sum(b["people"] for b in report["bins"].values()) == report["people"]
+
+
+def test_the_harder_kinds_hold_canvases_without_people_and_people_cut_by_the_edge(data_dir):
+    lsp = load_lsp(split="test")
+    plain = protocol(lsp, 12, seed=3)
+    harder = protocol(lsp, 40, seed=3, empty=0.3, cut=0.5)
+    assert [c.sources.tolist() for c in protocol(lsp, 12, seed=3, empty=0, cut=0)] == [
+        c.sources.tolist() for c in plain
+    ]
+    empty = [c for c in harder if len(c.heights) == 0]
+    assert 4 <= len(empty) <= 24 and all(c.image.shape == (480, 640, 3) for c in empty)
+    people = [c for c in harder if len(c.heights)]
+    cut = [(c, p) for c in people for p in range(len(c.heights)) if not c.inside()[p].all()]
+    assert cut and all(c.inside()[p].sum() >= 3 for c, p in cut)  # cut, not gone
+    for canvas, person in cut:  # its joints beyond the edge lie beyond one edge
+        beyond = canvas.joints[person][canvas.located[person] & ~canvas.inside()[person]]
+        edges = [(beyond[:, 0] < 0).all(), (beyond[:, 0] >= 640).all()]
+        edges += [(beyond[:, 1] < 0).all(), (beyond[:, 1] >= 480).all()]
+        assert any(edges), beyond
+    # a perfect answer finds every person, and every answer on an empty canvas is a phantom
+    perfect = score(harder, [(c.joints, np.ones(len(c.joints))) for c in harder])
+    assert perfect["all"]["recall"] == 1 and perfect["large"]["precision"] == 1
+    assert perfect["answers_on_empty_canvases"] == 0
+    phantom = [(np.full((1, 14, 2), 200.0) + np.arange(14)[:, None] * 10, np.ones(1))] * len(harder)
+    assert score(harder, phantom)["answers_on_empty_canvases"] == len(empty)
