@@ -92,8 +92,8 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -240.75
-    score_width: float = 10.49
+    score_center: float = -246.49
+    score_width: float = 17.4
     max_aspect_ratio: float = 8.0
 
 
