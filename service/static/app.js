@@ -663,40 +663,47 @@ function drawUserBox(ctx, box, scale, size) {
 // ---------------------------------------------------------------------------------------------
 // The 3D view: canvas 2D and a perspective projection of our own.
 //
-// The answer's 3D joints are in the camera's frame (x right, y down, z away, mm). The view's
-// world is y-up: X = x, Y = -y, Z = -z, each person centred on its hips, the people side by
-// side a metre apart in the photo's left-to-right order, standing on the ground (Y = 0) under
-// the lowest joint.
+// Every person where it stands: its joints in the camera's frame (joints_3d_camera: x right,
+// y down, z away, mm). The view's world is y-up: X = x, Y = -y, Z = -z, moved so that the middle
+// of the people's hips (to the nearest tick) is the grid's centre, standing on the ground
+// (Y = 0) under the lowest joint; the axes read the camera's x and z.
 
-const PERSON_SPACING_MM = 1000;
-const GRID_STEP_MM = 250;
-const TICK_STEP_MM = 500;
+// The ground's ticks: the first step that labels its side in about 5 ticks; the grid at half
+// of it. The height is ticked every HEIGHT_TICK_MM.
+const TICKS_MM = [500, 1000, 2000, 5000, 10000];
+const HEIGHT_TICK_MM = 500;
 const FIELD_OF_VIEW = (25 * Math.PI) / 180; // narrow: little distortion near the eye
 const NEAREST_MM = 1500; // the eye's distance, as near and as far as the zoom goes
 const FARTHEST_MM = 30000;
 
 function placeScene(people) {
   if (!people.length) return null;
-  const order = people
-    .map((person, i) => [i, person.box ? (person.box[0] + person.box[2]) / 2 : i])
-    .sort((a, b) => a[1] - b[1])
-    .map(([i]) => i);
-  const skeletons = order.map((index, slot) => {
-    const joints = people[index].joints_3d;
-    const [right, left] = SKELETON.hips;
-    const hips = [0, 2].map((axis) => (joints[right][axis] + joints[left][axis]) / 2);
-    const shift = (slot - (order.length - 1) / 2) * PERSON_SPACING_MM;
-    return joints.map(([x, y, z]) => [x - hips[0] + shift, -y, -(z - hips[1])]);
-  });
+  const [right, left] = SKELETON.hips;
+  const hips = people.map(({ joints_3d_camera: joints }) =>
+    [0, 2].map((axis) => (joints[right][axis] + joints[left][axis]) / 2),
+  );
+  const span = (k) => [Math.min(...hips.map((h) => h[k])), Math.max(...hips.map((h) => h[k]))];
+  const [[xLow, xHigh], [zLow, zHigh]] = [span(0), span(1)];
+  const half = Math.max(xHigh - xLow, zHigh - zLow) / 2 + 1500; // about half the ground's side
+  const tick = TICKS_MM.find((t) => half / t <= 2.5) ?? TICKS_MM[TICKS_MM.length - 1];
+  // camera x and z at the grid's centre, on a tick
+  const origin = [xLow + xHigh, zLow + zHigh].map((twice) => Math.round(twice / 2 / tick) * tick);
+  const skeletons = people.map(({ joints_3d_camera: joints }) =>
+    joints.map(([x, y, z]) => [x - origin[0], -y, -(z - origin[1])]),
+  );
   const floor = Math.min(...skeletons.flat().map((p) => p[1]));
   for (const skeleton of skeletons) for (const p of skeleton) p[1] -= floor;
   const top = Math.max(...skeletons.flat().map((p) => p[1]));
-  const half = (order.length - 1) * (PERSON_SPACING_MM / 2);
+  // the grid reaches a metre past the outermost joints, in whole grid steps
+  const reach = (axis) => Math.max(...skeletons.flat().map((p) => Math.abs(p[axis])));
+  const step = tick / 2;
+  const grid = (mm) => Math.ceil((mm + 1000) / step) * step;
   return {
     skeletons,
-    // the grid reaches a metre past the outer people, in whole grid steps
-    extentX: Math.ceil((half + 1000) / GRID_STEP_MM) * GRID_STEP_MM,
-    extentZ: 1000,
+    origin,
+    tick,
+    extentX: grid(reach(0)),
+    extentZ: grid(reach(2)),
     height: Math.max(top, 1000),
   };
 }
@@ -744,7 +751,7 @@ function fitDistance(canvas, scene) {
 }
 
 function axisTop(scene) {
-  return Math.ceil(scene.height / TICK_STEP_MM) * TICK_STEP_MM;
+  return Math.ceil(scene.height / HEIGHT_TICK_MM) * HEIGHT_TICK_MM;
 }
 
 function sizeCanvas3d(canvas) {
@@ -793,19 +800,19 @@ function segment(ctx, a, b) {
 function drawGrid(ctx, project, scene, ratio) {
   const { extentX: ex, extentZ: ez } = scene;
   ctx.lineWidth = ratio;
-  for (let x = -ex; x <= ex; x += GRID_STEP_MM) {
+  for (let x = -ex; x <= ex; x += scene.tick / 2) {
     ctx.strokeStyle = x === 0 ? "#a9a9a2" : "#d6d6d0";
     segment(ctx, project([x, 0, -ez]), project([x, 0, ez]));
   }
-  for (let z = -ez; z <= ez; z += GRID_STEP_MM) {
+  for (let z = -ez; z <= ez; z += scene.tick / 2) {
     ctx.strokeStyle = z === 0 ? "#a9a9a2" : "#d6d6d0";
     segment(ctx, project([-ex, 0, z]), project([ex, 0, z]));
   }
 }
 
-// Axes ticked every 500 mm: x along the grid's front edge, z along its left edge, the height up
-// from its back left corner (behind the people). x and z read as the answer's (x right, z away from
-// the camera, from the hips); the vertical one is the height above the lowest joint.
+// Axes ticked (scene.tick, HEIGHT_TICK_MM): x along the grid's front edge, z along its left edge, the height up
+// from its back left corner (behind the people). x and z read as the camera's (x right, z away
+// from it); the vertical one is the height above the lowest joint.
 const LABEL_OFFSET_MM = 140; // labels stand off their axis
 
 function axisLabels(scene) {
@@ -814,10 +821,13 @@ function axisLabels(scene) {
   const out = LABEL_OFFSET_MM;
   const labels = [];
   // the corner's own tick is the z axis's: two numbers there would overlap
-  const firstX = -ex + (ex % TICK_STEP_MM || TICK_STEP_MM);
-  for (let x = firstX; x <= ex; x += TICK_STEP_MM) labels.push([[x, 0, ez + out], String(x)]);
-  for (let z = -ez; z <= ez; z += TICK_STEP_MM) labels.push([[-ex - out, 0, z], String(-z)]);
-  for (let y = TICK_STEP_MM; y <= top; y += TICK_STEP_MM) {
+  const { tick, origin: [x0, z0] } = scene;
+  const firstX = -ex + (ex % tick || tick);
+  for (let x = firstX; x <= ex; x += tick) labels.push([[x, 0, ez + out], String(x + x0)]);
+  for (let z = -ez + (ez % tick); z <= ez; z += tick) {
+    labels.push([[-ex - out, 0, z], String(z0 - z)]);
+  }
+  for (let y = HEIGHT_TICK_MM; y <= top; y += HEIGHT_TICK_MM) {
     labels.push([[-ex - out, y, -ez - out], String(y)]);
   }
   const titles = [
