@@ -47,6 +47,12 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--json", action="store_true", help="also OUT/json/: a JSON file per image")
     p.add_argument("--coco", action="store_true", help="also OUT/coco_keypoints.json")
     p.add_argument(
+        "--bvh",
+        action="store_true",
+        help="also the joint angles as BVH: OUT/bvh/*.bvh per image and person (one frame), "
+        "OUT/NAME.bvh per video (its best person)",
+    )
+    p.add_argument(
         "--overlay",
         action="store_true",
         help="also the skeletons drawn: OUT/overlay/*.jpg per image, OUT/NAME_overlay.mp4 per "
@@ -178,7 +184,7 @@ def predict(args) -> int:
     pipeline = Pipeline.load(args.model_dir, device=args.device, database=args.database)
     skipped = []
     with (
-        RunWriter(args.out, args.json, args.coco, args.overlay, args.stride) as out,
+        RunWriter(args.out, args.json, args.coco, args.overlay, args.stride, args.bvh) as out,
         progress(desc="predict", unit="img") as bar,
     ):
 

@@ -1,4 +1,5 @@
-"""Biovision Hierarchy (.bvh, .bvh.gz) motion capture: a strict reader and forward kinematics.
+"""Biovision Hierarchy (.bvh, .bvh.gz) motion capture: a strict reader, forward kinematics, and a
+writer (format_bvh: what parse_bvh reads back as the same BvhMotion).
 
 Conventions (those of the format, as read by MotionBuilder, Blender and the CMU conversions):
 - A joint's CHANNELS are applied in the declared order. The local rotation is the product of
@@ -96,6 +97,37 @@ def parse_bvh(text: str, source: str = "<string>") -> BvhMotion:
     num_channels = sum(len(c) for c in hierarchy[3])
     frame_time, motion = _parse_motion(lines, motion_line + 1, num_channels, source)
     return BvhMotion(*hierarchy, frame_time=frame_time, motion=motion)
+
+
+def format_bvh(motion: BvhMotion, decimals: int = 4) -> str:
+    """The text of a BVH file of `motion` (tab-indented, numbers to `decimals` places): its
+    joints depth-first as in motion.names, an End Site for each "<parent>/End"."""
+    lines = ["HIERARCHY"]
+    children = [
+        [c for c, p in enumerate(motion.parents) if p == j] for j in range(len(motion.names))
+    ]
+
+    def number(value: float) -> str:
+        return f"{value:.{decimals}f}"
+
+    def block(j: int, depth: int) -> None:
+        pad = "\t" * depth
+        offset = " ".join(number(v) for v in motion.offsets[j])
+        if motion.names[j].endswith("/End"):
+            lines.extend([f"{pad}End Site", f"{pad}{{", f"{pad}\tOFFSET {offset}", f"{pad}}}"])
+            return
+        lines.append(f"{pad}{'ROOT' if depth == 0 else 'JOINT'} {motion.names[j]}")
+        lines.extend([f"{pad}{{", f"{pad}\tOFFSET {offset}"])
+        declared = motion.channels[j]
+        lines.append(f"{pad}\tCHANNELS {len(declared)} {' '.join(declared)}")
+        for child in children[j]:
+            block(child, depth + 1)
+        lines.append(f"{pad}}}")
+
+    block(0, 0)
+    lines += ["MOTION", f"Frames: {motion.num_frames}", f"Frame Time: {motion.frame_time:.6f}"]
+    lines += [" ".join(number(v) for v in row) for row in motion.motion]
+    return "\n".join(lines) + "\n"
 
 
 def _parse_hierarchy(

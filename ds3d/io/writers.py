@@ -8,6 +8,9 @@
     NAME_overlay.mp4         --overlay: each video, its frames with the 2D skeletons and the 3D
                              skeletons on a panel beside them
     NAME_3d.npz, NAME_3d.csv each video: the best person's joints per frame, as a sequence
+    bvh/NNNNNN_NAME_K.bvh    --bvh: each still image's person K (0: the best) as a one-frame BVH
+    NAME.bvh                 --bvh: each video's best person, a frame per frame read
+                             (ds3d.kinematics: joint angles, the root where the person stands)
 
 COCO's 17 keypoints from ds3d's 14 LSP joints: the shoulders, elbows, wrists, hips, knees and
 ankles map one to one; COCO's nose, eyes and ears have no LSP joint and are written (0, 0)
@@ -25,9 +28,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
+from ds3d.data.bvh import format_bvh
 from ds3d.io.predictions import Prediction
 from ds3d.io.sources import Frame
+from ds3d.kinematics import camera_to_world, inverse_kinematics, to_bvh
 from ds3d.skeleton import JOINT_NAMES
 
 COCO_KEYPOINTS = (
@@ -75,11 +81,12 @@ class RunWriter:
         coco: bool = False,
         overlay: bool = False,
         stride: int = 1,
+        bvh: bool = False,
     ):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.lines = open(self.folder / "predictions.jsonl", "w")  # closed by close()
-        self.json_files, self.overlay = json_files, overlay
+        self.json_files, self.overlay, self.bvh = json_files, overlay, bvh
         self.coco: dict[str, list[dict]] | None = (
             {"images": [], "annotations": []} if coco else None
         )
@@ -112,12 +119,20 @@ class RunWriter:
             self.video = None
         if is_video:
             if self.video is None:
-                self.video = _VideoOutputs(self.folder, prediction.frame, self.overlay, self.stride)
+                self.video = _VideoOutputs(
+                    self.folder, prediction.frame, self.overlay, self.stride, self.bvh
+                )
             self.video.add(prediction)
-        elif self.overlay:
+            return
+        if self.overlay:
             (self.folder / "overlay").mkdir(exist_ok=True)
             picture = prediction.plot(with_3d=False)
             cv2.imwrite(str(self.folder / "overlay" / f"{name}.jpg"), picture[..., ::-1])
+        if self.bvh:
+            (self.folder / "bvh").mkdir(exist_ok=True)
+            for k, person in enumerate(prediction.people):
+                text = bvh_text(person.joints_3d_camera[None], frame_time=1.0)
+                (self.folder / "bvh" / f"{name}_{k}.bvh").write_text(text)
 
     def _add_coco(self, coco: dict[str, list[dict]], prediction: Prediction, name: str) -> None:
         image_id = self.count
@@ -170,16 +185,26 @@ class RunWriter:
             (self.folder / "coco_keypoints.json").write_text(json.dumps(coco))
 
 
-class _VideoOutputs:
-    """One video's sequence (NAME_3d.npz, NAME_3d.csv) and, with overlay, NAME_overlay.mp4."""
+def bvh_text(joints: np.ndarray, frame_time: float) -> str:
+    """A BVH file of one person's F poses (F, 14, 3) mm in camera coordinates: its joint angles
+    (ds3d.kinematics) with the bones' median lengths, the root where the person stands."""
+    motion = inverse_kinematics(camera_to_world(torch.from_numpy(joints).double()))
+    return format_bvh(to_bvh(motion, frame_time))
 
-    def __init__(self, folder: Path, first: Frame, overlay: bool, stride: int):
+
+class _VideoOutputs:
+    """One video's sequence (NAME_3d.npz, NAME_3d.csv), with overlay NAME_overlay.mp4, with bvh
+    NAME.bvh."""
+
+    def __init__(self, folder: Path, first: Frame, overlay: bool, stride: int, bvh: bool = False):
         self.source = first.source
         stem = Path(first.source.split("?")[0]).stem or "video"
         self.base = folder / stem.replace(":", "")
         self.fps = first.fps or 25.0
         self.frames: list[int] = []
         self.joints_3d: list[np.ndarray] = []
+        self.placed: list[np.ndarray] = []  # the best person's joints_3d_camera, NaN for nobody
+        self.bvh = bvh
         self.joints_2d: list[np.ndarray] = []
         self.scores: list[float] = []
         self.writer: cv2.VideoWriter | None = None
@@ -192,10 +217,12 @@ class _VideoOutputs:
         if prediction.people:  # the best person; NaN for a frame with nobody
             best = prediction.people[0]
             self.joints_3d.append(best.joints_3d)
+            self.placed.append(best.joints_3d_camera)
             self.joints_2d.append(best.joints_2d)
             self.scores.append(best.score)
         else:
             self.joints_3d.append(np.full((len(JOINT_NAMES), 3), np.nan, np.float32))
+            self.placed.append(self.joints_3d[-1])
             self.joints_2d.append(np.full((len(JOINT_NAMES), 2), np.nan, np.float32))
             self.scores.append(0.0)
         if self.overlay:
@@ -211,6 +238,14 @@ class _VideoOutputs:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.release()
+        placed = np.stack(self.placed)
+        known = np.isfinite(placed).all((1, 2))
+        if self.bvh and known.any():
+            # a frame with nobody holds the pose of the last frame with somebody (the frames
+            # before the first such, its pose)
+            last = np.maximum.accumulate(np.where(known, np.arange(len(known)), -1))
+            poses = placed[np.where(last < 0, known.argmax(), last)]
+            Path(f"{self.base}.bvh").write_text(bvh_text(poses, self.stride / self.fps))
         joints_3d = np.stack(self.joints_3d)
         np.savez_compressed(
             f"{self.base}_3d.npz",

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from ds3d.cli import main as cli
+from ds3d.data.bvh import forward_kinematics, read_bvh
 from ds3d.data.lsp import load_lsp
 from ds3d.io.images import read_image
+from ds3d.kinematics import JOINT_NODES, NODES
 from ds3d.skeleton import NUM_JOINTS
 
 
@@ -37,7 +39,7 @@ def test_predict_streams_a_folder_and_a_video_and_writes_every_output(
     out = tmp_path / "out"
     args = ["--quiet", "predict", str(folder), str(tmp_path / "clip.mp4"), str(tmp_path / "no.jpg")]
     args += ["--stride", "2", "--batch-size", "3", "--out", str(out), "--model-dir", str(model_dir)]
-    assert cli([*args, "--json", "--coco", "--overlay"]) == 0
+    assert cli([*args, "--json", "--coco", "--overlay", "--bvh"]) == 0
 
     lines = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
     errors = {Path(line["source"]).name: line["error"] for line in lines if "error" in line}
@@ -71,6 +73,17 @@ def test_predict_streams_a_folder_and_a_video_and_writes_every_output(
     assert ok and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 2
     _, source = cv2.VideoCapture(str(tmp_path / "clip.mp4")).read()
     assert frame.shape[0] == source.shape[0] and frame.shape[1] > source.shape[1]  # 3D beside
+
+    # the joint angles as BVH: a one-frame file per still image's person, a file per video; the
+    # project's reader places the joints where the answers put them (camera axes to y up)
+    stills = sorted((out / "bvh").glob("*.bvh"))
+    assert [p.name for p in stills] == ["000001_a_0.bvh", "000002_b_0.bvh"]
+    placed = np.asarray(person["joints_3d_camera"]) * [1, -1, -1]
+    motion = read_bvh(stills[0])
+    joints = forward_kinematics(motion)[0, [motion.index(NODES[n].name) for n in JOINT_NODES]]
+    np.testing.assert_allclose(joints, placed, atol=0.01)
+    clip = read_bvh(out / "clip.bvh")
+    assert clip.num_frames == 2 and clip.frame_time == pytest.approx(2 / 12.0, abs=1e-6)
 
 
 def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
