@@ -186,6 +186,12 @@ def inverse_kinematics(joints: torch.Tensor, lengths: torch.Tensor | None = None
     return Motion(rest_offsets(lengths), hip_midpoint(joints), torch.stack(local, 1))
 
 
+def camera_motion(joints: np.ndarray) -> Motion:
+    """Joint angles of F poses (F, 14, 3) mm in camera coordinates (as answered:
+    joints_3d_camera), in float64 (inverse_kinematics of their world axes)."""
+    return inverse_kinematics(camera_to_world(torch.from_numpy(np.asarray(joints, np.float64))))
+
+
 def forward_kinematics(motion: Motion) -> torch.Tensor:
     """The joints (F, 14, 3) mm, world axes, that a Motion places."""
     world: list[torch.Tensor] = []

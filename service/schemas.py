@@ -11,12 +11,14 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 import ds3d.result
-from ds3d.fit.camera import ASSUMED_FOV_DEG
+from ds3d.fit.camera import ASSUMED_FOV_DEG, quaternion
 from ds3d.inputs import MAX_COORDINATE_PX, MIN_FOCAL_PX
+from ds3d.kinematics import NODES, Motion, camera_motion
 from ds3d.skeleton import NUM_JOINTS
 
 Point2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 Point3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Quaternion = Annotated[list[float], Field(min_length=4, max_length=4)]
 # What the library takes (ds3d.inputs), said in the schema: coordinates and camera entries within
 # MAX_COORDINATE_PX, focal lengths of at least MIN_FOCAL_PX, at least two joints visible.
 Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_PX, le=MAX_COORDINATE_PX)]
@@ -82,6 +84,36 @@ class LiftResponse(BaseModel):
     )
 
 
+class JointAngles(BaseModel):
+    """A person's joint angles for animation tools (ds3d.kinematics): the ds3d skeleton as a
+    hierarchy of nodes, every bone turned by a node of its own; world axes y up (the camera's
+    x, -y, -z: a person facing the camera faces +z), a T-pose facing +z at rest, millimetres.
+    Forward kinematics of these places the joints at joints_3d_camera (in world axes)."""
+
+    nodes: list[str] = Field(description="the nodes, every parent before its children")
+    parents: list[int] = Field(description="per node, its parent's index; -1 for the root")
+    offsets: list[Point3] = Field(
+        description="per node, its position in its parent's frame at rest, millimetres (from"
+        " the person's bone lengths)"
+    )
+    root: Point3 = Field(description="the root (the hip midpoint), millimetres, world axes")
+    rotations: list[Quaternion] = Field(
+        description="per node, its rotation in its parent's frame (the root's in the world's)"
+        " as a unit quaternion [w, x, y, z]"
+    )
+
+    @classmethod
+    def of(cls, motion: Motion) -> JointAngles:
+        """The first frame of a Motion (ds3d.kinematics)."""
+        return cls(
+            nodes=[node.name for node in NODES],
+            parents=[node.parent for node in NODES],
+            offsets=motion.offsets.tolist(),
+            root=motion.root[0].tolist(),
+            rotations=quaternion(motion.rotations[0]).tolist(),
+        )
+
+
 class Person(BaseModel):
     box: list[float] = Field(description="[x0, y0, x1, y1] pixels, the box of the joints")
     score: float = Field(description="probability in [0, 1] that this is a person")
@@ -115,11 +147,18 @@ class Person(BaseModel):
         " person's own, and below 0.5 they were swapped: near 0.5 they are a guess"
     )
     joint_set: str
+    angles: JointAngles | None = Field(
+        None, description="with angles=true, the joint angles for animation tools"
+    )
 
     @classmethod
-    def of(cls, person: ds3d.result.Person) -> Person:
-        """The library's person (ds3d.result.Person) as the API answers it."""
-        return cls.model_validate(person.to_json())
+    def of(cls, person: ds3d.result.Person, angles: bool = False) -> Person:
+        """The library's person (ds3d.result.Person) as the API answers it, with its joint
+        angles when asked."""
+        answer = cls.model_validate(person.to_json())
+        if angles:
+            answer.angles = JointAngles.of(camera_motion(person.joints_3d_camera[None]))
+        return answer
 
 
 class PoseResponse(Person):

@@ -33,10 +33,10 @@ def rotation_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     return eye + torch.sinc(turns) * skew + 0.5 * torch.sinc(turns / 2) ** 2 * (skew @ skew)
 
 
-def rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
-    """The inverse of rotation_matrix: (..., 3, 3) -> (..., 3) radians, angle in [0, pi].
-    Through the unit quaternion, taken from the largest of its four candidate forms (Shepperd's
-    method), which keeps every angle well conditioned."""
+def quaternion(rotation: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotations -> (..., 4) unit quaternions (w, x, y, z), w >= 0: taken from the
+    largest of its four candidate forms (Shepperd's method), which keeps every one well
+    conditioned."""
     m = rotation.flatten(-2).unbind(-1)  # m[3 * row + col]
     trace_forms = torch.stack(
         [
@@ -58,9 +58,15 @@ def rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
         -2,
     ) / (2 * root[..., None].clamp_min(0.1))  # each row: (w, x, y, z) up to a common factor
     best = root.argmax(-1)[..., None, None].expand(*root.shape[:-1], 1, 4)
-    quaternion = torch.gather(forms, -2, best)[..., 0, :]
-    quaternion = quaternion * torch.where(quaternion[..., :1] < 0, -1.0, 1.0)  # w >= 0
-    w, v = quaternion[..., 0], quaternion[..., 1:]
+    unit = torch.gather(forms, -2, best)[..., 0, :]
+    return unit * torch.where(unit[..., :1] < 0, -1.0, 1.0)  # w >= 0
+
+
+def rotation_vector(rotation: torch.Tensor) -> torch.Tensor:
+    """The inverse of rotation_matrix: (..., 3, 3) -> (..., 3) radians, angle in [0, pi],
+    through the unit quaternion."""
+    q = quaternion(rotation)
+    w, v = q[..., 0], q[..., 1:]
     sin_half = v.norm(dim=-1)
     # angle / sin(angle / 2), with its limit 2 / w near zero
     factor = torch.where(

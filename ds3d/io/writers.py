@@ -28,12 +28,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
 from ds3d.data.bvh import format_bvh
 from ds3d.io.predictions import Prediction
 from ds3d.io.sources import Frame
-from ds3d.kinematics import camera_to_world, inverse_kinematics, to_bvh
+from ds3d.kinematics import camera_motion, to_bvh
 from ds3d.skeleton import JOINT_NAMES
 
 COCO_KEYPOINTS = (
@@ -188,8 +187,7 @@ class RunWriter:
 def bvh_text(joints: np.ndarray, frame_time: float) -> str:
     """A BVH file of one person's F poses (F, 14, 3) mm in camera coordinates: its joint angles
     (ds3d.kinematics) with the bones' median lengths, the root where the person stands."""
-    motion = inverse_kinematics(camera_to_world(torch.from_numpy(joints).double()))
-    return format_bvh(to_bvh(motion, frame_time))
+    return format_bvh(to_bvh(camera_motion(joints), frame_time))
 
 
 class _VideoOutputs:

@@ -38,6 +38,9 @@ async def pose(
     min_score: float = Query(
         MIN_SCORE, ge=0.0, le=1.0, description="people scoring less are not answered"
     ),
+    angles: bool = Query(
+        False, description="also each person's joint angles for animation tools (`angles`)"
+    ),
     focal_px: float | None = Query(
         None,
         ge=MIN_FOCAL_PX,
@@ -67,6 +70,7 @@ async def pose(
         "timings_ms": request_timings_ms([out], time.perf_counter() - t0),
     }
     if people == "all":
-        return PeopleResponse(people=[Person.of(p) for p in out.people], **common)
+        return PeopleResponse(people=[Person.of(p, angles) for p in out.people], **common)
     (best,) = out.people
-    return PoseResponse(**Person.of(best).model_dump(), person_found=best.person_found, **common)
+    answer = Person.of(best, angles).model_dump()
+    return PoseResponse(**answer, person_found=best.person_found, **common)

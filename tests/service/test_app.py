@@ -14,12 +14,14 @@ import zlib
 import httpx
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import DataFormatError
 from ds3d.io.images import read_image
+from ds3d.kinematics import NODES, Motion, forward_kinematics
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
 from ds3d.util.paths import MODELS_DIR
 from ds3d.util.threads import intra_op_threads
@@ -303,6 +305,28 @@ def test_pose_matches_the_pipeline(pose_engine, serving):
         np.testing.assert_allclose(res.joints_3d_camera, res.joints_3d + res.root_position)
         given = client.estimate(path, focal_px=900.0)
         assert given.focal_px == 900.0 and given.focal_assumed is False
+        # Joint angles on request: forward kinematics of them places the joints as answered.
+        asked = httpx.post(
+            f"{u}/v1/pose", params={"angles": "true"}, content=path.read_bytes(),
+            headers={"content-type": "image/jpeg"}, timeout=60,
+        )  # fmt: skip
+        person = asked.json()
+        angles = person["angles"]
+        assert angles["nodes"][0] == "hips" and len(angles["rotations"]) == len(NODES)
+        w, x, y, z = torch.tensor(angles["rotations"], dtype=torch.float64).unbind(-1)
+        turns = torch.stack(
+            [
+                1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            ],
+            -1,
+        ).view(1, -1, 3, 3)  # fmt: skip
+        motion = Motion(
+            torch.tensor(angles["offsets"]), torch.tensor([angles["root"]]).double(), turns
+        )
+        placed = np.asarray(person["joints_3d_camera"]) * [1, -1, -1]
+        np.testing.assert_allclose(forward_kinematics(motion)[0], placed, atol=0.05)
         # Raw JPEG body, box and intrinsics as query parameters.
         params = {"bbox": json.dumps(box), "intrinsics": json.dumps(k)}
         raw = httpx.post(
