@@ -41,6 +41,7 @@ class Person:
     facing_camera: float
     joint_set: str
     psm_energy: np.ndarray
+    track_id: int | None = None  # in a video, the person's track (ds3d.tracking.Tracker)
 
     @property
     def joints_3d_camera(self) -> np.ndarray:

@@ -50,6 +50,13 @@ def register(commands, evals, benches) -> None:
         default="clean,noise5,noise10,outlier40,every-set,unweighted",
         help="comma-separated input/algorithm variants (ds3d.evaluation.h36m.VARIANTS)",
     )
+    p.add_argument(
+        "--video",
+        action="store_true",
+        help="instead: sequences as 2D tracks with --noise px, jitter and error before and after "
+        "the video smoothing (ds3d.evaluation.h36m.video_report)",
+    )
+    p.add_argument("--noise", type=float, default=10.0, help="px, with --video")
     p.add_argument("--out", type=Path, help="JSON report")
     add_model_options(p, threads=None, device=True)
     add_set_option(p, LIFTER_OVERRIDE)
@@ -92,7 +99,21 @@ def lift(args) -> int:
 
 
 def eval_h36m(args) -> int:
-    from ds3d.evaluation.h36m import VARIANTS, evaluate_variant, protocol_cases
+    from ds3d.evaluation.h36m import VARIANTS, evaluate_variant, protocol_cases, video_report
+
+    if args.video:
+        lifter = load_lifter(args)
+        report = {"model": lifter.model_id, "database": args.database}
+        report |= video_report(lifter, args.subject, args.noise)
+        raw, smoothed = report["raw"], report["smoothed"]
+        print(
+            f"jitter {raw['jitter']:.1f} -> {smoothed['jitter']:.1f} mm/frame^2, camera-space "
+            f"MPJPE {raw['camera_mpjpe']:.1f} -> {smoothed['camera_mpjpe']:.1f} mm, MPJPE "
+            f"{raw['mpjpe']:.1f} -> {smoothed['mpjpe']:.1f} mm ({report['frames']} frames)",
+            file=sys.stderr,
+        )
+        write_report(report, args.out)
+        return 0
 
     names = args.variants.split(",")
     unknown = set(names) - set(VARIANTS)

@@ -44,6 +44,12 @@ def register(commands, evals, benches) -> None:
         help="the camera's focal length in px, which places the people in its coordinates "
         f"(root_position; default: a {ASSUMED_FOV_DEG:g}-degree field of view is assumed)",
     )
+    p.add_argument(
+        "--no-smooth",
+        action="store_true",
+        help="leave the 3D joints of videos and webcams as estimated frame by frame (by default "
+        "each tracked person's are smoothed: ds3d.tracking)",
+    )
     p.add_argument("--json", action="store_true", help="also OUT/json/: a JSON file per image")
     p.add_argument("--coco", action="store_true", help="also OUT/coco_keypoints.json")
     p.add_argument(
@@ -203,6 +209,7 @@ def predict(args) -> int:
             min_score=MIN_SCORE if args.min_score is None else args.min_score,
             iterations=args.iterations,
             focal_px=args.focal_px,
+            smooth=not args.no_smooth,
             on_skip=skip,
         )
         try:

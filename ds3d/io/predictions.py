@@ -23,9 +23,10 @@ import numpy as np
 from ds3d.boxes import checked_box
 from ds3d.errors import InvalidBox, InvalidImage
 from ds3d.image2d.search import SearchParams, check_searchable
-from ds3d.io.sources import Frame, frames
+from ds3d.io.sources import DEFAULT_FPS, Frame, frames
 from ds3d.pipeline import MIN_SCORE, Pipeline
 from ds3d.result import Person
+from ds3d.tracking import Tracker
 from ds3d.viz.overlay import plot
 
 log = logging.getLogger("ds3d")
@@ -123,6 +124,7 @@ def predict(
     min_score: float = MIN_SCORE,
     iterations: int | None = None,
     focal_px: float | None = None,
+    smooth: bool = True,
     device: str = "cpu",
     on_skip: Callable[[Frame], None] = _log_skip,
 ) -> Iterator[Prediction]:
@@ -130,12 +132,15 @@ def predict(
     at a time by `pipeline` (default: the bundled models, loaded once per process on `device`).
     stride: every n-th frame of a video or camera; bbox: one person box (x0, y0, x1, y1) px for
     every image (default: people are searched for); people, min_score, iterations, focal_px:
-    as Pipeline.estimate. Unreadable sources, images that cannot hold bbox and, without one,
+    as Pipeline.estimate. The people of a video's or a camera's frames are tracked, each with
+    its track_id, and with `smooth` their 3D joints smoothed along the track (ds3d.tracking).
+    Unreadable sources, images that cannot hold bbox and, without one,
     images too elongated to search go to `on_skip` (default: a logged warning)."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     pipeline = pipeline or _default_pipeline(device)
     readable = _readable(_stream(sources, stride), bbox, pipeline.config.search, on_skip)
+    trackers: dict[str, Tracker] = {}
     while batch := list(itertools.islice(readable, batch_size)):
         result = pipeline.estimate(
             [f.image for f in batch],
@@ -146,4 +151,8 @@ def predict(
             focal_px=focal_px,
         )
         for i, frame in enumerate(batch):
-            yield Prediction(frame, result.people(i))
+            found = result.people(i)
+            if frame.index is not None:
+                tracker = trackers.setdefault(frame.source, Tracker(smooth))
+                found = tracker.update(found, stride / (frame.fps or DEFAULT_FPS))
+            yield Prediction(frame, found)

@@ -28,6 +28,7 @@ from ds3d.io.images import DEFAULT_MAX_PIXELS, decode_image
 # The most bytes read from a URL: a long video, far more than any photo.
 MAX_URL_BYTES = 512 * 1024 * 1024
 URL_TIMEOUT_S = 30.0
+DEFAULT_FPS = 25.0  # a stream that does not say its frame rate
 
 
 @dataclass

@@ -31,7 +31,7 @@ import numpy as np
 
 from ds3d.data.bvh import format_bvh
 from ds3d.io.predictions import Prediction
-from ds3d.io.sources import Frame
+from ds3d.io.sources import DEFAULT_FPS, Frame
 from ds3d.kinematics import camera_motion, to_bvh
 from ds3d.skeleton import JOINT_NAMES
 
@@ -198,7 +198,7 @@ class _VideoOutputs:
         self.source = first.source
         stem = Path(first.source.split("?")[0]).stem or "video"
         self.base = folder / stem.replace(":", "")
-        self.fps = first.fps or 25.0
+        self.fps = first.fps or DEFAULT_FPS
         self.frames: list[int] = []
         self.joints_3d: list[np.ndarray] = []
         self.placed: list[np.ndarray] = []  # the best person's joints_3d_camera, NaN for nobody

@@ -49,6 +49,8 @@ def test_predict_streams_a_folder_and_a_video_and_writes_every_output(
         ("a.jpg", None), ("b", None), ("clip.mp4", 0), ("clip.mp4", 2)
     ]  # fmt: skip
     person = done[0]["people"][0]
+    # a video's people are tracked: the clip's one person keeps its id
+    assert person["track_id"] is None and [d["people"][0]["track_id"] for d in done[2:]] == [0, 0]
     assert np.asarray(person["joints_3d"]).shape == (NUM_JOINTS, 3)
     assert len(list((out / "json").iterdir())) == 4
     assert len(list((out / "overlay").glob("*.jpg"))) == 2  # the stills; the video as MP4
