@@ -56,7 +56,7 @@ def register(commands, evals, benches) -> None:
         "--bvh",
         action="store_true",
         help="also the joint angles as BVH: OUT/bvh/*.bvh per image and person (one frame), "
-        "OUT/NAME.bvh per video (its best person)",
+        "OUT/NAME_K.bvh per video and tracked person K",
     )
     p.add_argument(
         "--overlay",

@@ -9,8 +9,9 @@
                              skeletons on a panel beside them
     NAME_3d.npz, NAME_3d.csv each video: the best person's joints per frame, as a sequence
     bvh/NNNNNN_NAME_K.bvh    --bvh: each still image's person K (0: the best) as a one-frame BVH
-    NAME.bvh                 --bvh: each video's best person, a frame per frame read
-                             (ds3d.kinematics: joint angles, the root where the person stands)
+    NAME_K.bvh               --bvh: each video's tracked person K (ds3d.tracking), a frame per
+                             frame read from its first to its last (ds3d.kinematics: joint
+                             angles, the root where the person stands)
 
 COCO's 17 keypoints from ds3d's 14 LSP joints: the shoulders, elbows, wrists, hips, knees and
 ankles map one to one; COCO's nose, eyes and ears have no LSP joint and are written (0, 0)
@@ -201,7 +202,8 @@ class _VideoOutputs:
         self.fps = first.fps or DEFAULT_FPS
         self.frames: list[int] = []
         self.joints_3d: list[np.ndarray] = []
-        self.placed: list[np.ndarray] = []  # the best person's joints_3d_camera, NaN for nobody
+        # per track, the frame (of those read) and joints_3d_camera of each of its people
+        self.tracks: dict[int, list[tuple[int, np.ndarray]]] = {}
         self.bvh = bvh
         self.joints_2d: list[np.ndarray] = []
         self.scores: list[float] = []
@@ -212,15 +214,18 @@ class _VideoOutputs:
         index = prediction.frame.index
         assert index is not None, "a video's frames are numbered"
         self.frames.append(index)
+        for person in prediction.people:
+            if person.track_id is not None:
+                self.tracks.setdefault(person.track_id, []).append(
+                    (len(self.frames) - 1, person.joints_3d_camera)
+                )
         if prediction.people:  # the best person; NaN for a frame with nobody
             best = prediction.people[0]
             self.joints_3d.append(best.joints_3d)
-            self.placed.append(best.joints_3d_camera)
             self.joints_2d.append(best.joints_2d)
             self.scores.append(best.score)
         else:
             self.joints_3d.append(np.full((len(JOINT_NAMES), 3), np.nan, np.float32))
-            self.placed.append(self.joints_3d[-1])
             self.joints_2d.append(np.full((len(JOINT_NAMES), 2), np.nan, np.float32))
             self.scores.append(0.0)
         if self.overlay:
@@ -236,14 +241,12 @@ class _VideoOutputs:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.release()
-        placed = np.stack(self.placed)
-        known = np.isfinite(placed).all((1, 2))
-        if self.bvh and known.any():
-            # a frame with nobody holds the pose of the last frame with somebody (the frames
-            # before the first such, its pose)
-            last = np.maximum.accumulate(np.where(known, np.arange(len(known)), -1))
-            poses = placed[np.where(last < 0, known.argmax(), last)]
-            Path(f"{self.base}.bvh").write_text(bvh_text(poses, self.stride / self.fps))
+        for track, seen in self.tracks.items() if self.bvh else ():
+            # from the track's first frame to its last; a frame it missed holds the pose before
+            at = np.array([k for k, _ in seen])
+            held = np.searchsorted(at, np.arange(at[0], at[-1] + 1), side="right") - 1
+            poses = np.stack([pose for _, pose in seen])[held]
+            Path(f"{self.base}_{track}.bvh").write_text(bvh_text(poses, self.stride / self.fps))
         joints_3d = np.stack(self.joints_3d)
         np.savez_compressed(
             f"{self.base}_3d.npz",
