@@ -1,5 +1,6 @@
 """People followed through a video: each keeps an id from frame to frame (Tracker), and its 3D
-joints are smoothed with a filter of bounded lag (OneEuro), so that a clip does not jitter
+joints are smoothed with a filter of bounded lag (OneEuro) and held to the bone lengths seen
+along its track (TrackFilter), so that a clip does not jitter and its skeleton does not stretch
 (measured by `ds3d eval h36m --video`).
 
 The One-Euro filter (Casiez, Roussel and Vogel, CHI 2012) is a low-pass filter whose cutoff rises
@@ -12,8 +13,11 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 
 from ds3d.boxes import iou
+from ds3d.fit.bones import bone_lengths
+from ds3d.kinematics import camera_to_world, forward_kinematics, inverse_kinematics
 from ds3d.skeleton import L_HIP, R_HIP
 
 
@@ -55,10 +59,31 @@ def _blend(previous: np.ndarray, sample: np.ndarray, alpha) -> np.ndarray:
     return previous + alpha * (sample - previous)
 
 
-def smooth_sequence(joints: np.ndarray, fps: float, filter: OneEuro | None = None) -> np.ndarray:
-    """(F, ...) one person's values frame by frame -> the same, One-Euro filtered."""
-    one_euro = filter or OneEuro()
-    return np.stack([one_euro(frame, 1.0 / fps) for frame in joints])
+@dataclass
+class TrackFilter:
+    """One person's joints along a track, frame by frame: One-Euro smoothed, then held to the
+    track's bone lengths (the mean of each bone's length over the frames so far, each bone in
+    its smoothed direction: ds3d.kinematics), so that one person keeps one skeleton."""
+
+    smoothing: OneEuro = field(default_factory=OneEuro)
+    _length_sum: torch.Tensor | None = field(default=None, repr=False)
+    _frames: int = 0
+
+    def __call__(self, joints: np.ndarray, dt: float) -> np.ndarray:
+        """(14, 3) mm in camera coordinates, dt s after the previous frame -> the same, held."""
+        lengths = bone_lengths(torch.from_numpy(np.asarray(joints, np.float64)))
+        self._length_sum = lengths if self._length_sum is None else self._length_sum + lengths
+        self._frames += 1
+        smoothed = camera_to_world(torch.from_numpy(self.smoothing(joints, dt))[None])
+        motion = inverse_kinematics(smoothed, self._length_sum / self._frames)
+        return camera_to_world(forward_kinematics(motion))[0].numpy()
+
+
+def follow(joints: np.ndarray, fps: float, filter: TrackFilter | None = None) -> np.ndarray:
+    """(F, 14, 3) one person's joints in camera coordinates, frame by frame at `fps` -> the
+    same through a TrackFilter (a new one by default), as a Tracker answers them."""
+    track = filter or TrackFilter()
+    return np.stack([track(frame, 1.0 / fps) for frame in joints])
 
 
 def jitter(joints: np.ndarray) -> float:
@@ -72,7 +97,7 @@ class _Track:
     id: int
     box: np.ndarray
     joints_2d: np.ndarray
-    filter: OneEuro
+    filter: TrackFilter
     missed: int = 0
 
 
@@ -83,7 +108,8 @@ class Tracker:
     (IoU at least min_iou), ties broken by the 2D poses' distance (relative to the box's
     diagonal); the others start new tracks. A track not continued for more than max_missed
     frames ends, so that a cut or a person leaving starts afresh. With `smooth`, each track's
-    joints in camera coordinates go through its own OneEuro filter (`filter`'s parameters), and
+    joints in camera coordinates go through its own TrackFilter (with `filter`'s One-Euro
+    parameters), and
     the hip-centred joints and the root follow them.
     """
 
@@ -122,9 +148,8 @@ class Tracker:
         out = []
         for i, person in enumerate(people):
             if i not in track_of:
-                track_of[i] = _Track(
-                    self.next_id, person.box, person.joints_2d, replace(self.template)
-                )
+                follower = TrackFilter(replace(self.template))
+                track_of[i] = _Track(self.next_id, person.box, person.joints_2d, follower)
                 self.next_id += 1
                 self.tracks.append(track_of[i])
             track = track_of[i]

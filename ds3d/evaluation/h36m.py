@@ -23,7 +23,7 @@ from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
 from ds3d.lifter import PAPER_OVERRIDES
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
-from ds3d.tracking import jitter, smooth_sequence
+from ds3d.tracking import follow, jitter
 from ds3d.util.progress import progress
 
 
@@ -191,8 +191,9 @@ def video_report(
     """Video: every `every`-th sequence of `subject` (sorted), its first `frames` frames at 50
     fps seen by camera 1 as 2D tracks with `noise_px` of Gaussian noise per coordinate, lifted
     frame by frame with the camera's intrinsics and placed in its coordinates; then the same
-    One-Euro filtered (ds3d.tracking). Per version: jitter (mean frame-to-frame acceleration,
-    mm/frame^2), the camera-space MPJPE and the MPJPE with hip midpoints aligned, mm."""
+    followed as a track (ds3d.tracking.follow: One-Euro smoothed, bones held). Per version:
+    jitter (mean frame-to-frame acceleration, mm/frame^2), the camera-space MPJPE and the
+    MPJPE with hip midpoints aligned, mm."""
     sequences = load_h36m_sequences((subject,))
     camera = load_cameras()[(subject, 1)]
     rng = np.random.default_rng(seed)
@@ -226,7 +227,7 @@ def video_report(
         "frames": sum(len(c) for c in raw),
         "truth_jitter": float(np.mean([jitter(t) for t in truth])),
         "raw": figures(raw),
-        "smoothed": figures([smooth_sequence(c, 50.0) for c in raw]),
+        "smoothed": figures([follow(c, 50.0) for c in raw]),
     }
 
 
