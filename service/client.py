@@ -86,6 +86,9 @@ class PoseResult:
     joints_3d_camera: np.ndarray | None = None
     focal_px: float | None = None
     focal_assumed: bool | None = None
+    # asked with angles=True: the joint angles for animation tools, as the API answers them
+    # (service.schemas.JointAngles: nodes, parents, offsets, root, rotations as quaternions)
+    angles: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -180,9 +183,12 @@ class _Protocol:
         people: str = "best",
         min_score: float | None = None,
         focal_px: float | None = None,
+        angles: bool = False,
     ) -> _Request:
         data, ctype = _image_bytes(image)
         query: dict = {"people": people}
+        if angles:
+            query["angles"] = "true"
         if min_score is not None:
             query["min_score"] = float(min_score)
         if focal_px is not None:
@@ -278,6 +284,7 @@ def _person(person: dict, body: dict, found: bool) -> PoseResult:
         joints_3d_camera=_array_or_none(person, "joints_3d_camera"),
         focal_px=float(person["focal_px"]) if "focal_px" in person else None,
         focal_assumed=bool(person["focal_assumed"]) if "focal_assumed" in person else None,
+        angles=person.get("angles"),
     )
 
 
@@ -331,12 +338,18 @@ class PoseClient:
         return self._send(req, self._proto.parse_lift)
 
     def estimate(
-        self, image: ImageLike, bbox=None, intrinsics=None, focal_px: float | None = None
+        self,
+        image: ImageLike,
+        bbox=None,
+        intrinsics=None,
+        focal_px: float | None = None,
+        angles: bool = False,
     ) -> PoseResult:
         """image: a path, image file bytes, or an (H, W, 3) uint8 RGB array; bbox (4,) x0, y0,
         x1, y1 pixels; intrinsics (3, 3); focal_px: without intrinsics, the camera's focal
-        length in pixels, which places the person (PoseResult.root_position; default assumed)."""
-        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px)
+        length in pixels, which places the person (PoseResult.root_position; default assumed);
+        angles: also the joint angles (PoseResult.angles)."""
+        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px, angles=angles)
         return self._send(req, self._proto.parse_pose)
 
     def find_people(
@@ -345,10 +358,11 @@ class PoseClient:
         intrinsics=None,
         min_score: float | None = None,
         focal_px: float | None = None,
+        angles: bool = False,
     ) -> list[PoseResult]:
         """Every person in the image scoring at least min_score (default: the server's),
-        best first; [] when nobody does."""
-        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px)
+        best first; [] when nobody does. Other arguments as estimate."""
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px, angles)
         return self._send(req, self._proto.parse_people)
 
     def estimate_many(self, images: Iterable[ImageLike], concurrency: int = 8) -> list[PoseResult]:
@@ -409,9 +423,14 @@ class AsyncPoseClient:
         return await self._send(req, self._proto.parse_lift)
 
     async def estimate(
-        self, image: ImageLike, bbox=None, intrinsics=None, focal_px: float | None = None
+        self,
+        image: ImageLike,
+        bbox=None,
+        intrinsics=None,
+        focal_px: float | None = None,
+        angles: bool = False,
     ) -> PoseResult:
-        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px)
+        req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px, angles=angles)
         return await self._send(req, self._proto.parse_pose)
 
     async def find_people(
@@ -420,8 +439,9 @@ class AsyncPoseClient:
         intrinsics=None,
         min_score: float | None = None,
         focal_px: float | None = None,
+        angles: bool = False,
     ) -> list[PoseResult]:
-        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px)
+        req = self._proto.pose_request(image, None, intrinsics, "all", min_score, focal_px, angles)
         return await self._send(req, self._proto.parse_people)
 
     async def estimate_many(

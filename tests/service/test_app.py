@@ -303,8 +303,10 @@ def test_pose_matches_the_pipeline(pose_engine, serving):
         assert res.focal_assumed and res.root_position is not None
         np.testing.assert_allclose(res.root_position, ref.root_position[0].numpy(), atol=1e-1)
         np.testing.assert_allclose(res.joints_3d_camera, res.joints_3d + res.root_position)
-        given = client.estimate(path, focal_px=900.0)
+        given = client.estimate(path, focal_px=900.0, angles=True)
         assert given.focal_px == 900.0 and given.focal_assumed is False
+        assert given.angles is not None and given.angles["nodes"][0] == "hips"
+        assert client.estimate(path).angles is None
         # Joint angles on request: forward kinematics of them places the joints as answered.
         asked = httpx.post(
             f"{u}/v1/pose", params={"angles": "true"}, content=path.read_bytes(),
