@@ -62,3 +62,21 @@ def test_each_base_is_registered_once_and_answers_in_the_route():
     assert response.json() == {
         "error": {"code": "invalid_box", "message": "bbox lies outside the image"}
     }
+
+
+def test_a_bug_in_a_route_is_a_json_500_counted_under_its_route():
+    """The app's own middlewares (service.app): the answer is JSON, and the request is counted
+    under the route's template."""
+    from service.app import create_app
+    from service.settings import Settings
+
+    app = create_app(Settings())
+
+    @app.get("/v1/broken/{part}")
+    async def broken(part: str):
+        raise RuntimeError("a bug")
+
+    response = TestClient(app, raise_server_exceptions=False).get("/v1/broken/x")
+    assert response.status_code == 500 and response.json()["error"]["code"] == "internal"
+    text = app.state.metrics.render().decode()
+    assert 'ds3d_requests_total{route="/v1/broken/{part}",status="500"} 1.0' in text
