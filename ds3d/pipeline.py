@@ -191,13 +191,14 @@ class Pipeline:
         estimate = self.estimate_2d(images, candidates)
         answered, found = self.answered(candidates, estimate, people, min_score)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)[answered]
-        camera = None  # without intrinsics, the camera that places the people
+        # the camera that places the people: the intrinsics given, or one per image of its size
         if intrinsics is not None:
             intrinsics = torch.as_tensor(np.asarray(intrinsics, np.float32))
             intrinsics = intrinsics[image_index] if intrinsics.ndim == 3 else intrinsics
-        elif len(image_index):
+            camera = intrinsics.expand(len(image_index), 3, 3)
+        else:
             sizes = [(i, *images[i].shape[1::-1]) for i in image_index.tolist()]
-            camera = torch.stack([pinhole(w, h, focal[i]) for i, w, h in sizes])
+            camera = torch.stack([pinhole(w, h, focal[i]) for i, w, h in sizes]) if sizes else None
         result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations, camera)
         assumed = [intrinsics is None and focal[i] is None for i in image_index.tolist()]
         result.focal_assumed = torch.tensor(assumed, dtype=torch.bool)
@@ -304,9 +305,9 @@ class Pipeline:
         self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None, camera=None
     ) -> PipelineResult:
         """Everything after the 2D stage, on its result for B people (arguments as estimate):
-        lets a caller run several configurations on one 2D estimate. camera: without
-        intrinsics, optional (B, 3, 3) intrinsics in whose coordinates to place the people
-        (without either, root_position is NaN)."""
+        lets a caller run several configurations on one 2D estimate. camera: optional (B, 3, 3),
+        the intrinsics of the camera in whose coordinates to place the people (estimate passes
+        those given, or a camera of each image's size); without, root_position is NaN."""
         cfg = self.config
         if iterations is not None:
             cfg = dataclasses.replace(cfg, iterations=iterations)
@@ -335,16 +336,13 @@ class Pipeline:
         with stage_timer(timings, "pose_fit", dev):
             chosen = lifter.problems(query, best.joint_set)
             pose, projection, root = lifter.fit_pose(best.kept, best.weights, best.params, chosen)
-        frame = chosen.own.frame
-        placed_by = frame.intrinsics
-        if placed_by is None and camera is not None:
-            placed_by = torch.as_tensor(camera, dtype=torch.float32, device=dev)
-        if placed_by is None:
+        if camera is None:
             root_position = torch.full_like(root, torch.nan)
             focal = torch.full_like(root[:, 0], torch.nan)
         else:
-            root_position = lifter.root_position(root, projection, frame, placed_by)
-            focal = (placed_by[:, 0, 0] + placed_by[:, 1, 1]) / 2
+            k = torch.as_tensor(camera, dtype=torch.float32, device=dev)
+            root_position = lifter.root_position(root, projection, chosen.own.frame, k)
+            focal = (k[:, 0, 0] + k[:, 1, 1]) / 2
         x = query.joints_2d
         probability = (est.sample_unaries(x[:, None]).exp()[:, 0] - LOG_EPS).clamp(0.0, 1.0)
         if self.joint_calibration is not None:
