@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
 from service.access.rules import API_KEY_SCHEMES, Guard, access_rules
 from service.access.rules import describe as describe_access
@@ -26,6 +26,7 @@ from service.engine import Engine
 from service.errors import ApiError, error_response, install_handlers, to_api_error
 from service.metrics import Metrics
 from service.microbatch import MicroBatcher
+from service.middleware import HttpMiddleware
 from service.routes import API_ROUTERS, ROUTERS
 from service.settings import Settings
 
@@ -161,43 +162,27 @@ def request_head_bytes(scope: Scope) -> int:
     return line + sum(len(k) + len(v) + 4 for k, v in scope["headers"]) + 2
 
 
-# The middlewares are plain ASGI (not `app.middleware("http")`, whose call_next passes each
-# answer through a memory stream): an answer's head and body then reach the server in one step of
-# the event loop, so a replica killed under load cannot leave a balancer holding a head without
-# its body, which it could not send to another replica (tests/tools/test_crash.py).
-
-
-class RefuseLargeHead:
+class RefuseLargeHead(HttpMiddleware):
     """Middleware: 431 naming max_header_bytes for a request head over it. (Uvicorn's own parser
     stops reading at 4 times the setting, with a bare 400, so that a huge head is never
     buffered whole.)"""
 
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            limit = scope["app"].state.settings.max_header_bytes
-            if (size := request_head_bytes(scope)) > limit:
-                message = f"the request head is {size} bytes, over max_header_bytes = {limit}"
-                answer = error_response(ApiError(431, "headers_too_large", message))
-                await answer(scope, receive, send)
-                return
+    async def http(self, scope: Scope, receive: Receive, send: Send) -> None:
+        limit = scope["app"].state.settings.max_header_bytes
+        if (size := request_head_bytes(scope)) > limit:
+            message = f"the request head is {size} bytes, over max_header_bytes = {limit}"
+            answer = error_response(ApiError(431, "headers_too_large", message))
+            await answer(scope, receive, send)
+            return
         await self.app(scope, receive, send)
 
 
-class ObserveRequests:
+class ObserveRequests(HttpMiddleware):
     """Middleware: count and time every request by its route template ("unmatched" when no route
     took it), so that the metrics' labels stay few whatever the URLs; a bug is answered 500 (and
     logged), counted like any other answer."""
 
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def http(self, scope: Scope, receive: Receive, send: Send) -> None:
         state = scope["app"].state
         t0 = time.perf_counter()
         status: int | None = None

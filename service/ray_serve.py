@@ -45,7 +45,7 @@ from fastapi import FastAPI
 from ray import serve
 from ray.serve.config import BackpressureConfig
 from starlette.datastructures import MutableHeaders
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
 from service.app import create_app, model_executor
 from service.deps import Runtime
@@ -58,6 +58,7 @@ from service.microbatch import (
     admit,
     first_result,
 )
+from service.middleware import HttpMiddleware
 from service.settings import Settings
 
 log = logging.getLogger("service.ray_serve")
@@ -160,21 +161,18 @@ class ServeQueue(Generic[T, R]):
         self._closing = True
 
 
-class OneRequestId:
-    """ASGI middleware: drop the app's X-Request-ID from the answers. Ray's proxy adds its own
-    to every answer: the id it passed in (the client's, or a new one), which the access guard
-    took as the request's id; without this the header came twice."""
+class OneRequestId(HttpMiddleware):
+    """Middleware: drop the app's X-Request-ID from the answers. Ray's proxy adds its own to
+    every answer: the id it passed in (the client's, or a new one), which the access guard took
+    as the request's id; without this the header came twice."""
 
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+    async def http(self, scope: Scope, receive: Receive, send: Send) -> None:
         async def send_without_id(message: Message) -> None:
             if message["type"] == "http.response.start":
                 del MutableHeaders(scope=message)["x-request-id"]
             await send(message)
 
-        await self.app(scope, receive, send_without_id if scope["type"] == "http" else send)
+        await self.app(scope, receive, send_without_id)
 
 
 @serve.deployment(name=DEPLOYMENT, ray_actor_options={"num_cpus": 1})

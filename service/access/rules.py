@@ -18,11 +18,12 @@ from urllib.parse import parse_qsl
 from fastapi import Request, Security
 from fastapi.security import APIKeyHeader, HTTPBearer
 from starlette.datastructures import MutableHeaders
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
 from service.access.keys import ApiKeys, InvalidKeys, presented_key, read_keys
 from service.access.ratelimit import RequestRate, TooManyRequests
 from service.errors import ApiError, error_response
+from service.middleware import HttpMiddleware
 from service.settings import Settings
 
 log = logging.getLogger("service.access.rules")
@@ -132,17 +133,11 @@ def request_id(request: Request) -> str:
     return given if REQUEST_ID.fullmatch(given) else uuid.uuid4().hex
 
 
-class Guard:
+class Guard(HttpMiddleware):
     """Middleware: the request id, the caller (request.state.caller) or its refusal, the browser
     headers, and one access log line (method, path without the query, status, ms, caller)."""
 
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def http(self, scope: Scope, receive: Receive, send: Send) -> None:
         t0 = time.perf_counter()
         request = Request(scope)
         rid = request.state.request_id = request_id(request)
