@@ -18,7 +18,7 @@ import torch
 from ds3d.boxes import iou
 from ds3d.fit.bones import bone_lengths
 from ds3d.kinematics import camera_to_world, forward_kinematics, inverse_kinematics
-from ds3d.skeleton import L_HIP, R_HIP
+from ds3d.skeleton import hip_midpoint
 
 
 @dataclass
@@ -162,5 +162,5 @@ class Tracker:
         if not self.smooth:
             return replace(person, track_id=track.id)
         placed = track.filter(person.joints_3d_camera, dt).astype(np.float32)
-        root = (placed[R_HIP] + placed[L_HIP]) / 2
+        root = hip_midpoint(placed)
         return replace(person, track_id=track.id, joints_3d=placed - root, root_position=root)
