@@ -49,7 +49,7 @@ from ds3d.image2d.jointnet import (
     ScaledLogits,
     jointnet_unaries,
     logits_to_grid,
-    padded_logits,
+    padded_logits_each,
     read_logits,
     unaries_from_logits,
 )
@@ -172,17 +172,9 @@ class PoseEstimator2D:
             check_searchable(image.shape[0], image.shape[1], search)
 
         def run(rows: torch.Tensor) -> list[Proposals]:
-            return [
-                propose(
-                    jointnet,
-                    self.mixtures,
-                    images[i],
-                    p.canonical_extent,
-                    p.unary_weight,
-                    search,
-                )
-                for i in rows.tolist()
-            ]
+            part = [images[i] for i in rows.tolist()]
+            extent, weight = p.canonical_extent, p.unary_weight
+            return propose(jointnet, self.mixtures, part, extent, weight, search)
 
         return [found for part in map_on_threads(run, split_rows(len(images))) for found in part]
 
@@ -262,12 +254,11 @@ class PoseEstimator2D:
         t0 = time.perf_counter()
         resized = [resize_image(c.image, c.base * scales[base]) for c in crops]
         t1 = time.perf_counter()
-        logits = []
-        for crop, image in zip(crops, resized, strict=True):
-            read = _read_logits(crop, image)
-            if read is None:
-                read = padded_logits(jointnet, lab_channels(torch.from_numpy(image)[None]))
-            logits.append(read)
+        read = [_read_logits(crop, image) for crop, image in zip(crops, resized, strict=True)]
+        missing = [i for i, r in enumerate(read) if r is None]
+        labs = [lab_channels(torch.from_numpy(resized[i])[None]) for i in missing]
+        computed = dict(zip(missing, padded_logits_each(jointnet, labs), strict=True))
+        logits = [computed[i] if r is None else r for i, r in enumerate(read)]
         grids = [
             logits_to_grid(lg, r.shape[0], r.shape[1], STRIDE)
             for lg, r in zip(logits, resized, strict=True)

@@ -52,6 +52,9 @@ MARGIN = 16  # px of zeros around an image at inference (logits_on_grid); a mult
 # primitive creation (two dozen convolutions), several times the convolutions' own time, and
 # the primitive cache holds every shape met only where they are few.
 NET_BUCKET_STEPS = 4
+# Input px of the images the network takes in one call (padded_logits_each): batches as large
+# as a call gains from, within a bound on the activations (about 130 MB each at stride 2).
+NET_BATCH_PIXELS = 2**22
 
 
 @dataclass(frozen=True)
@@ -163,18 +166,56 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     its device: bfloat16 as load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or
     a float32 network under bfloat16 autocast there, as trained; returned on the CPU."""
     height, width = lab.shape[-2:]
-    padded_h, padded_w = height + 2 * MARGIN, width + 2 * MARGIN
-    right = bucket(padded_w, NET_BUCKET_STEPS) - width - MARGIN
-    bottom = bucket(padded_h, NET_BUCKET_STEPS) - height - MARGIN
-    padded = F.pad(lab, (MARGIN, right, MARGIN, bottom))
-    weight = next(net.parameters(), lab)
+    return _crop_logits(_run(net, _net_input(lab)), height, width).contiguous()
+
+
+def padded_logits_each(net: JointNet, labs: Sequence[Tensor]) -> list[Tensor]:
+    """padded_logits of each of N images of any sizes, labs (1, 3, H_i, W_i) Lab / 100 -> N
+    (1, 14, ceil((H_i + 2 MARGIN) / STRIDE), ceil((W_i + 2 MARGIN) / STRIDE)). The images whose
+    padded input is of one shape (one bucket) go through the network in one call, at most
+    NET_BATCH_PIXELS px of input a call: batched, a convolution costs a fraction of its cost one
+    image at a time (docs/RESULTS.md, 2D stage speed). An image's maps are those it gets alone,
+    up to the float rounding of a larger batch: it sees its own zeros, not its neighbours'."""
+    inputs = [_net_input(lab) for lab in labs]
+    by_shape: dict[tuple[int, int], list[int]] = {}
+    for i, x in enumerate(inputs):
+        by_shape.setdefault((x.shape[-2], x.shape[-1]), []).append(i)
+    found: dict[int, Tensor] = {}
+    for (height, width), rows in by_shape.items():
+        per_call = max(1, NET_BATCH_PIXELS // (height * width))
+        for start in range(0, len(rows), per_call):
+            chunk = rows[start : start + per_call]
+            logits = _run(net, torch.cat([inputs[i] for i in chunk]))
+            for i, maps in zip(chunk, logits, strict=True):
+                found[i] = _crop_logits(maps[None], *labs[i].shape[-2:]).contiguous()
+    return [found[i] for i in range(len(labs))]
+
+
+def _net_input(lab: Tensor) -> Tensor:
+    """lab (B, 3, H, W) -> the network's input: a MARGIN px border of zeros, then zeros below
+    and right up to the bucket of each side (padded_logits)."""
+    height, width = lab.shape[-2:]
+    right = bucket(width + 2 * MARGIN, NET_BUCKET_STEPS) - width - MARGIN
+    bottom = bucket(height + 2 * MARGIN, NET_BUCKET_STEPS) - height - MARGIN
+    return F.pad(lab, (MARGIN, right, MARGIN, bottom))
+
+
+def _run(net: JointNet, padded: Tensor) -> Tensor:
+    """The network on its padded input (B, 3, H', W') in its dtype and on its device (as
+    padded_logits) -> (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on the CPU."""
+    weight = next(net.parameters(), padded)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
         padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)
-        logits = net(padded)[..., : -(-padded_h // STRIDE), : -(-padded_w // STRIDE)]
         # back on the CPU, where the cascade and the PSM read it
-        return logits.float().cpu().contiguous()
+        return net(padded).float().cpu()
+
+
+def _crop_logits(logits: Tensor, height: int, width: int) -> Tensor:
+    """The cells of a (height, width) image's padded_logits out of the network's output on its
+    bucket-padded input."""
+    return logits[..., : -(-(height + 2 * MARGIN) // STRIDE), : -(-(width + 2 * MARGIN) // STRIDE)]
 
 
 @dataclass(frozen=True)
@@ -269,12 +310,19 @@ def logits_on_grid(
     cascade.grid_positions(H, W, stride): (B, 14, ceil(H / stride), ceil(W / stride)).
     flip_test: the mean of the logits of the images and of their mirror images. padded: the
     images' padded_logits where already computed."""
-    height, width = lab.shape[-2:]
     padded = padded_logits(net, lab) if padded is None else padded
+    mirrored = padded_logits(net, lab.flip(-1)) if flip_test else None
+    return _grid_logits(padded, mirrored, lab.shape[-2], lab.shape[-1], stride)
+
+
+def _grid_logits(
+    padded: Tensor, mirrored: Tensor | None, height: int, width: int, stride: int
+) -> Tensor:
+    """logits_on_grid of (height, width) images from their padded_logits, and with flip_test
+    their mirror images' (else None)."""
     logits = logits_to_grid(padded, height, width, stride)
-    if not flip_test:
+    if mirrored is None:
         return logits
-    mirrored = padded_logits(net, lab.flip(-1))
     return (logits + logits_to_grid(mirrored, height, width, stride, mirrored=True)) / 2
 
 
@@ -301,14 +349,20 @@ def jointnet_unaries(
 ) -> Tensor:
     """The joint network's unaries on the grid: channels (b, 12, H, W) zero-padded, sizes b
     (h, w) -> (b, 14, gh, gw) unaries_from_logits; log(LOG_EPS) outside each image. Each image
-    runs alone on its own pixels: past the first batch norm, a padded batch's zeros are no
-    longer zeros, and the network sees the whole person around each cell. flip_test, padded
-    (b of them): as logits_on_grid."""
+    runs on its own pixels and its own padding (padded_logits_each), not the group's: past the
+    first convolution's bias, zeros are no longer zeros, and the network sees the whole person
+    around each cell. flip_test, padded (b of them): as logits_on_grid."""
     h, w = channels.shape[-2:]
+    labs = [channels[i : i + 1, :3, :hi, :wi] for i, (hi, wi) in enumerate(sizes)]
+    known = list(padded) if padded is not None else [None] * len(labs)
+    missing = [i for i, k in enumerate(known) if k is None]
+    computed = dict(zip(missing, padded_logits_each(net, [labs[i] for i in missing]), strict=True))
+    logits = [computed[i] if k is None else k for i, k in enumerate(known)]
+    mirrored: list[Tensor | None] = [None] * len(labs)
+    if flip_test:
+        mirrored = list(padded_logits_each(net, [lab.flip(-1) for lab in labs]))
     out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), np.log(LOG_EPS))
     for i, (hi, wi) in enumerate(sizes):
-        lab = channels[i : i + 1, :3, :hi, :wi]
-        known = None if padded is None else padded[i]
-        logits = logits_on_grid(net, lab, stride, flip_test, known)
-        out[i, :, : logits.shape[2], : logits.shape[3]] = unaries_from_logits(logits)[0]
+        grid = _grid_logits(logits[i], mirrored[i], hi, wi, stride)
+        out[i, :, : grid.shape[2], : grid.shape[3]] = unaries_from_logits(grid)[0]
     return out

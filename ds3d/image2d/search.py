@@ -33,7 +33,7 @@ from ds3d.image2d.jointnet import (
     JointNet,
     ScaledLogits,
     logits_to_grid,
-    padded_logits,
+    padded_logits_each,
 )
 from ds3d.image2d.psm import PairwiseMixtures, RootScores
 
@@ -150,35 +150,80 @@ def local_peaks(scores: torch.Tensor, radius: int, count: int) -> torch.Tensor:
 def propose(
     net: JointNet,
     mixtures: PairwiseMixtures,
-    image: np.ndarray,
+    images: list[np.ndarray],
     canonical_extent: float,
     unary_weight: float,
     params: SearchParams,
-) -> Proposals:
-    """The people of one image (H, W, 3) uint8 RGB: the search of the module docstring, on the
-    calling thread. canonical_extent: px of a person at the working scale; unary_weight: the
-    PSM's weight on its unaries (EstimatorParams)."""
-    height, width = image.shape[:2]
-    poses, scores, levels = [], [], []
+) -> list[Proposals]:
+    """The people of each of N images (H_i, W_i, 3) uint8 RGB: the search of the module
+    docstring, on the calling thread. The levels of all images go through the network together
+    (jointnet.padded_logits_each) and their PSMs in groups of one grid shape, so that neither
+    runs one small level at a time. canonical_extent: px of a person at the working scale;
+    unary_weight: the PSM's weight on its unaries (EstimatorParams)."""
     pool = max(params.psm_stride // STRIDE, 1)
-    for extent in level_extents(height, params):
-        resized = resize_image(image, canonical_extent / extent)
-        if min(resized.shape[:2]) < 2 * STRIDE * pool:
-            continue  # the level's image is smaller than a few PSM cells
-        logits = padded_logits(net, lab_channels(torch.from_numpy(resized)[None]))
-        to_level = (resized.shape[1] / width, resized.shape[0] / height)
-        levels.append(ScaledLogits(logits, to_level))
-        grid = logits_to_grid(logits, resized.shape[0], resized.shape[1], STRIDE)
+    levels = []  # (image index, the image resized to the level)
+    for i, image in enumerate(images):
+        for extent in level_extents(image.shape[0], params):
+            resized = resize_image(image, canonical_extent / extent)
+            if min(resized.shape[:2]) >= 2 * STRIDE * pool:  # else smaller than a few PSM cells
+                levels.append((i, resized))
+    logits = padded_logits_each(net, [lab_channels(torch.from_numpy(r)[None]) for _, r in levels])
+    grids = []
+    for lg, (_, resized) in zip(logits, levels, strict=True):
+        grid = logits_to_grid(lg, resized.shape[0], resized.shape[1], STRIDE)
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's are -inf: no root or joint can score there.
         rows, cols = grid.shape[-2:]
-        grid = F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf)
-        upward = RootScores(grid * unary_weight, mixtures, stride=float(STRIDE * pool))
-        peaks = local_peaks(upward.root[0], params.peak_radius, params.peaks_per_level)
-        found = upward.poses(peaks[None])
-        to_image = np.array([width / resized.shape[1], height / resized.shape[0]])
-        poses.append(found.joints_2d[0].numpy() * to_image)
-        scores.append(found.score[0].float().numpy())
+        grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
+    found = _level_people([g * unary_weight for g in grids], mixtures, STRIDE * pool, params)
+    poses: list[list[np.ndarray]] = [[] for _ in images]
+    scores: list[list[np.ndarray]] = [[] for _ in images]
+    views: list[list[ScaledLogits]] = [[] for _ in images]
+    for (i, resized), lg, (pose, score) in zip(levels, logits, found, strict=True):
+        height, width = images[i].shape[:2]
+        views[i].append(ScaledLogits(lg, (resized.shape[1] / width, resized.shape[0] / height)))
+        poses[i].append(pose * np.array([width / resized.shape[1], height / resized.shape[0]]))
+        scores[i].append(score)
+    return [_suppressed(*found, params) for found in zip(poses, scores, views, strict=True)]
+
+
+def _level_people(
+    unaries: list[torch.Tensor], mixtures: PairwiseMixtures, stride: int, params: SearchParams
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The people of each level: unaries (1, 14, h_i, w_i) the PSM's, stride px of the level per
+    cell -> per level, poses (K, 14, 2) px of the level and root scores (K,), the best local
+    maxima of the root scores (local_peaks). The levels of one grid shape share one PSM."""
+    by_shape: dict[tuple[int, ...], list[int]] = {}
+    for i, u in enumerate(unaries):
+        by_shape.setdefault(tuple(u.shape), []).append(i)
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for rows in by_shape.values():
+        upward = RootScores(torch.cat([unaries[i] for i in rows]), mixtures, stride=float(stride))
+        radius, count = params.peak_radius, params.peaks_per_level
+        peaks = [local_peaks(root, radius, count) for root in upward.root]
+        # The levels' peaks padded to one count with each level's first, then cut back.
+        count = max(len(p) for p in peaks)
+        padded = torch.stack([torch.cat([p, _first(p).expand(count - len(p), 2)]) for p in peaks])
+        found = upward.poses(padded)
+        for k, (i, p) in enumerate(zip(rows, peaks, strict=True)):
+            n = len(p)
+            out[i] = (found.joints_2d[k, :n].numpy(), found.score[k, :n].float().numpy())
+    return [out[i] for i in range(len(unaries))]
+
+
+def _first(peaks: torch.Tensor) -> torch.Tensor:
+    """(1, 2) the first of (K, 2) peak cells, or cell (0, 0) where there are none."""
+    return peaks[:1] if len(peaks) else peaks.new_zeros(1, 2)
+
+
+def _suppressed(
+    poses: list[np.ndarray],
+    scores: list[np.ndarray],
+    levels: list[ScaledLogits],
+    params: SearchParams,
+) -> Proposals:
+    """One image's Proposals from its levels' poses (K_l, 14, 2) px of the image and root
+    scores (K_l,): non-maximum suppression over all levels."""
     if not poses:
         return Proposals(np.zeros((0, 14, 2), np.float32), np.zeros(0, np.float32), levels)
     poses_all, scores_all = np.concatenate(poses), np.concatenate(scores)

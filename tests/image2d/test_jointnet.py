@@ -15,6 +15,8 @@ from ds3d.image2d.jointnet import (
     ScaledLogits,
     fold_batch_norms,
     logits_on_grid,
+    padded_logits,
+    padded_logits_each,
     read_logits,
     spatial_softmax,
 )
@@ -95,3 +97,13 @@ def test_folding_the_batch_norms_keeps_the_network():
         folded = fold_batch_norms(copy.deepcopy(net))
         assert not any(isinstance(m, nn.BatchNorm2d) for m in folded.modules())
         torch.testing.assert_close(folded(lab), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_images_batched_by_padded_shape_get_the_maps_they_get_alone():
+    torch.manual_seed(0)
+    net = fold_batch_norms(JointNet(JointNetShape((8, 8, 8), (1, 1, 1))))
+    # 70 x 50 and 66 x 52 share a padded shape (one call), 30 x 90 has its own.
+    labs = [torch.randn(1, 3, h, w) for h, w in ((70, 50), (30, 90), (66, 52), (70, 50))]
+    each = padded_logits_each(net, labs)
+    for lab, maps in zip(labs, each, strict=True):
+        torch.testing.assert_close(maps, padded_logits(net, lab), rtol=1e-4, atol=1e-4)
