@@ -193,6 +193,19 @@ def test_bad_intrinsics_and_visibility_raise(lifter):
         lifter.lift(joints, visible=np.zeros((1, 14), dtype=bool))
 
 
+def test_the_batched_eigensolver_lifts_as_lapack(lifter, cases, monkeypatch):
+    """The 3D fit's PCA by ds3d.fit.eigen.jacobi_eigh, as it runs off the CPU: the same poses
+    as with LAPACK's eigh, here on the CPU."""
+    from ds3d.fit import solve
+    from ds3d.fit.eigen import jacobi_eigh
+
+    part = cases.subset(np.arange(0, len(cases), 4))
+    lapack = lifter.lift(part.joints_2d, intrinsics=part.intrinsics)
+    monkeypatch.setattr(solve, "symmetric_eigh", jacobi_eigh)
+    jacobi = lifter.lift(part.joints_2d, intrinsics=part.intrinsics)
+    torch.testing.assert_close(jacobi.joints_3d, lapack.joints_3d, atol=1.0, rtol=0)  # mm
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 def test_the_lifter_runs_on_cuda_as_on_the_cpu(lifter, cases):
     """device="cuda": the database and every fit on the GPU, faiss on the CPU; the same poses."""

@@ -26,6 +26,7 @@ from ds3d.fit.camera import (
     rotation_matrix,
     rotation_vector,
 )
+from ds3d.fit.eigen import symmetric_eigh
 from ds3d.fit.energy import limb_lengths, limb_vectors
 from ds3d.fit.gauss_newton import Residuals
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS
@@ -97,7 +98,7 @@ def weighted_pca(poses: torch.Tensor, weights: torch.Tensor, components: int):
     centred = (flat - mean[..., None, :]) * w.sqrt()[..., None]
     # the eigenvectors of the (42, 42) scatter: the right singular vectors of `centred`, at
     # less than half the cost of its SVD
-    variance, vectors = torch.linalg.eigh(centred.transpose(-1, -2) @ centred)
+    variance, vectors = symmetric_eigh(centred.transpose(-1, -2) @ centred)
     c = min(components, *centred.shape[-2:])
     top = vectors.flip(-1)[..., :c].transpose(-1, -2)  # eigh sorts ascending
     return mean, top, variance.flip(-1)[..., :c].clamp_min(0).sqrt()
