@@ -136,8 +136,9 @@ class Pipeline:
     ) -> Pipeline:
         """The models of `model_dir` (default models/): the 2D stage in `image2d` (with its
         joint_calibration.json where it has one, ds3d.confidence), the pose database in
-        `database`; on `device` the 3D stage and the 2D stage's joint network (its forests and
-        PSM run on the CPU). Raises DataFormatError when either is missing or malformed."""
+        `database`; both stages on `device` (PoseEstimator2D.to; the 3D stage's retrieval
+        searches faiss on the CPU). Raises DataFormatError when either is missing or
+        malformed."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
         estimator = PoseEstimator2D.load(directory / image2d, device)
         lifter_config = LifterConfig() if lifter_config is None else lifter_config
@@ -283,12 +284,13 @@ class Pipeline:
         candidate is found when its box was given or it scores min_score[image]
         (person_probability). Returns the rows of `estimate` answered (N,) int64, image by
         image, best first, and found (C,) bool."""
-        score = person_probability(estimate.score.float(), self.config.search)
+        # on the CPU: a few numbers per candidate, settled with NumPy
+        score = person_probability(estimate.score.float().cpu(), self.config.search)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)
         given = torch.tensor([c.given for c in candidates])
         found = given | (score >= torch.tensor(min_score, dtype=score.dtype)[image_index])
         search = self.config.search
-        poses = estimate.joints_2d.numpy()
+        poses = estimate.joints_2d.cpu().numpy()
         boxes = person_boxes(poses)
         rows = [torch.zeros(0, dtype=torch.long)]
         for image in image_index.unique().tolist():

@@ -252,10 +252,13 @@ def test_the_bundled_confidences_say_how_often_joints_are_right(data_dir):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 def test_the_pipeline_runs_on_cuda_as_on_the_cpu(model_dir, images):
-    """device="cuda": the joint network and the 3D stage on the GPU; about the same poses (the
-    network's bfloat16 convolutions differ between the devices in their last bits)."""
+    """device="cuda": both stages on the GPU, searched and in given boxes; about the same poses
+    (the network's bfloat16 convolutions differ between the devices in their last bits)."""
     on_cpu = Pipeline.load(model_dir).estimate(images[:2])
-    on_gpu = Pipeline.load(model_dir, device="cuda").estimate(images[:2])
+    gpu_pipeline = Pipeline.load(model_dir, device="cuda")
+    assert gpu_pipeline.estimator.device.type == "cuda"
+    assert all(forest.node_table.is_cuda for forest in gpu_pipeline.estimator.layers)
+    on_gpu = gpu_pipeline.estimate(images[:2])
     assert on_gpu.joints_2d.device.type == "cpu" and on_gpu.joints_3d.device.type == "cpu"
     assert float((on_gpu.joints_2d - on_cpu.joints_2d).abs().median()) < 2.0  # px
     assert float((on_gpu.joints_3d - on_cpu.joints_3d).norm(dim=-1).median()) < 20.0  # mm

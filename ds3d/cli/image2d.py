@@ -91,9 +91,7 @@ def register(commands, evals, benches) -> None:
     e.add_argument("--limit", type=int, default=None, help="first N images only (after --start)")
     e.add_argument("--batch", type=int, default=16)
     e.add_argument("--threads", type=int, default=1)
-    e.add_argument(
-        "--device", default="cpu", help="where the joint network runs (the rest: the CPU)"
-    )
+    e.add_argument("--device", default="cpu", help="where the 2D stage runs (cpu, cuda)")
     e.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     e.add_argument(
         "--write-manifest", action="store_true", help="record the metrics in the model manifest"
@@ -103,7 +101,7 @@ def register(commands, evals, benches) -> None:
 
 
 def load_estimator(args) -> PoseEstimator2D:
-    """The 2D model of --model (its joint network on --device, where the command has one) with
+    """The 2D model of --model (on --device, where the command has one) with
     the --set overrides of its inference parameters."""
     est = PoseEstimator2D.load(args.model, getattr(args, "device", "cpu"))
     est.params = est.params.with_inference(**field_overrides(InferenceParams, args.set))

@@ -68,7 +68,7 @@ def register(commands, evals, benches) -> None:
         "--device",
         choices=("cpu", "cuda"),
         default="cpu",
-        help="where the joint network and the 3D stage run",
+        help="where both stages run",
     )
     add_model_options(p, threads=min(2, os.cpu_count() or 1))
     p.set_defaults(func=predict)

@@ -25,11 +25,13 @@ from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import FLIP, NUM_JOINTS
 
 
-def grid_positions(height: int, width: int, stride: int) -> tuple[torch.Tensor, int, int]:
+def grid_positions(
+    height: int, width: int, stride: int, device: torch.device | str = "cpu"
+) -> tuple[torch.Tensor, int, int]:
     """Pixels evaluated on a (height, width) image: (P, 2) int64 (y, x) = (i * stride, j * stride)
-    for a (gh, gw) grid, P = gh * gw (row-major). Returns (positions, gh, gw)."""
-    ys = torch.arange(0, height, stride)
-    xs = torch.arange(0, width, stride)
+    for a (gh, gw) grid, P = gh * gw (row-major), on `device`. Returns (positions, gh, gw)."""
+    ys = torch.arange(0, height, stride, device=device)
+    xs = torch.arange(0, width, stride, device=device)
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack([yy.reshape(-1), xx.reshape(-1)], dim=1), len(ys), len(xs)
 
@@ -53,8 +55,12 @@ def context_channels(
         last = [(gh - 1, gw - 1)] * b
     else:
         last = [((h - 1) // stride, (w - 1) // stride) for h, w in sizes]
-    iy = torch.div(torch.arange(height) + stride // 2, stride, rounding_mode="floor")
-    ix = torch.div(torch.arange(width) + stride // 2, stride, rounding_mode="floor")
+    iy = torch.div(
+        torch.arange(height, device=maps.device) + stride // 2, stride, rounding_mode="floor"
+    )
+    ix = torch.div(
+        torch.arange(width, device=maps.device) + stride // 2, stride, rounding_mode="floor"
+    )
     # Two index_selects per image: ~3x faster than one advanced index over the whole batch.
     return torch.stack(
         [
@@ -67,8 +73,8 @@ def context_channels(
 def pose_heatmaps(cells: torch.Tensor, height: int, width: int, sigma: float) -> torch.Tensor:
     """One Gaussian bump per joint: cells (B, 14, 2) (x, y) on a height x width grid, sigma in
     cells -> (B, 14, height, width) float32, 1 at each joint's cell."""
-    ys = torch.arange(height, dtype=torch.float32).view(1, 1, -1, 1)
-    xs = torch.arange(width, dtype=torch.float32).view(1, 1, 1, -1)
+    ys = torch.arange(height, dtype=torch.float32, device=cells.device).view(1, 1, -1, 1)
+    xs = torch.arange(width, dtype=torch.float32, device=cells.device).view(1, 1, 1, -1)
     dx = xs - cells[..., 0, None, None].float()
     dy = ys - cells[..., 1, None, None].float()
     return torch.exp(-0.5 * (dx * dx + dy * dy) / (sigma * sigma))
@@ -114,10 +120,11 @@ def cascade_probs(
     grid of grid_positions(H, W, stride).
     """
     b, _, h, w = channels.shape
-    positions, gh, gw = grid_positions(h, w, params.stride)
+    device = channels.device
+    positions, gh, gw = grid_positions(h, w, params.stride, device)
     # In a padded batch, cells outside an image are zeroed: as around a single image.
-    inside = None if sizes is None else valid_cells(sizes, h, w, params.stride)
-    inside_px = None if sizes is None else valid_cells(sizes, h, w, 1)
+    inside = None if sizes is None else valid_cells(sizes, h, w, params.stride, device)
+    inside_px = None if sizes is None else valid_cells(sizes, h, w, 1, device)
     index = None
     if cells is not None:
         positions, index = cell_positions(cells, params.stride)
@@ -153,7 +160,8 @@ def cell_positions(cells: torch.Tensor, stride: int) -> tuple[torch.Tensor, torc
     counts = chosen.sum(1)
     n = min(bucket(max(int(counts.max()), 1)), chosen.shape[1])
     order = torch.argsort((~chosen).to(torch.uint8), dim=1, stable=True)[:, :n]  # chosen first
-    index = torch.where(torch.arange(n)[None] < counts[:, None], order, order[:, :1])
+    first = torch.arange(n, device=cells.device)[None] < counts[:, None]
+    index = torch.where(first, order, order[:, :1])
     return torch.stack((index // gw * stride, index % gw * stride), -1), index
 
 
@@ -169,11 +177,17 @@ def forest_cells(net_unaries: torch.Tensor, reach: float) -> torch.Tensor:
     return (probs >= best * math.exp(-reach)).any(1)
 
 
-def valid_cells(sizes: list[tuple[int, int]], height: int, width: int, stride: int) -> torch.Tensor:
-    """(B, 1, gh, gw) bool: the cells of the grid of grid_positions(height, width, stride) that
-    fall inside each image of a zero-padded batch; sizes: B (h, w)."""
-    ys = torch.arange(0, height, stride)
-    xs = torch.arange(0, width, stride)
+def valid_cells(
+    sizes: list[tuple[int, int]],
+    height: int,
+    width: int,
+    stride: int,
+    device: torch.device | str = "cpu",
+) -> torch.Tensor:
+    """(B, 1, gh, gw) bool on `device`: the cells of the grid of grid_positions(height, width,
+    stride) that fall inside each image of a zero-padded batch; sizes: B (h, w)."""
+    ys = torch.arange(0, height, stride, device=device)
+    xs = torch.arange(0, width, stride, device=device)
     rows = torch.stack([ys < h for h, _ in sizes])  # (B, gh)
     cols = torch.stack([xs < w for _, w in sizes])  # (B, gw)
     return (rows[:, :, None] & cols[:, None, :])[:, None]
@@ -185,15 +199,15 @@ def unaries_from_probs(probs: torch.Tensor, blur: int) -> torch.Tensor:
 
 
 def group_channels(
-    group: list[np.ndarray], timings: dict[str, float]
+    group: list[np.ndarray], timings: dict[str, float], device: torch.device | str = "cpu"
 ) -> tuple[torch.Tensor, list[tuple[int, int]]]:
-    """Images (H_i, W_i, 3) uint8 zero-padded into one batch of channels (b, 12, H, W), H x W
-    the buckets of their largest height and width (ds3d.image2d.buckets); returns them and the
-    images' (h, w) sizes, and adds its seconds to timings["features"]."""
+    """Images (H_i, W_i, 3) uint8 zero-padded into one batch of channels (b, 12, H, W) on
+    `device`, H x W the buckets of their largest height and width (ds3d.image2d.buckets);
+    returns them and the images' (h, w) sizes, and adds its seconds to timings["features"]."""
     t0 = time.perf_counter()
     sizes = [image.shape[:2] for image in group]
     height, width = (bucket(max(side)) for side in zip(*sizes, strict=True))
-    channels = batch_channels(group, height, width)
+    channels = batch_channels(group, height, width, device)
     timings["features"] += time.perf_counter() - t0
     return channels, sizes
 
@@ -221,7 +235,7 @@ def group_unaries(
     timings["traversal"] += time.perf_counter() - t0
     if p.flip_test:
         mirrors = [mirror_on_grid(image, p.stride) for image in group]
-        mirror_channels, mirror_sizes = group_channels(mirrors, timings)
+        mirror_channels, mirror_sizes = group_channels(mirrors, timings, channels.device)
         if cells is not None:
             height, width = mirror_channels.shape[2], mirror_channels.shape[3]
             _, rows, cols = grid_positions(height, width, p.stride)
@@ -231,7 +245,8 @@ def group_unaries(
         timings["traversal"] += time.perf_counter() - t0
         probs = (probs + unmirror(mirrored, sizes, p.stride, probs.shape)) / 2
     unaries = unaries_from_probs(probs, p.unary_blur)  # zero outside each image
-    valid = valid_cells(sizes, channels.shape[2], channels.shape[3], p.stride)  # (b, 1, gh, gw)
+    height, width = channels.shape[2], channels.shape[3]
+    valid = valid_cells(sizes, height, width, p.stride, channels.device)  # (b, 1, gh, gw)
     return torch.where(valid, unaries, torch.full_like(unaries, np.log(LOG_EPS)))
 
 
@@ -288,10 +303,13 @@ def traversal_groups(sizes: list[tuple[int, int]], last_layer: Forest) -> list[l
     return groups
 
 
-def batch_channels(images: list[np.ndarray], height: int, width: int) -> torch.Tensor:
-    """Channels per image, zero-padded into a (B, 12, height, width) batch: exactly what a
-    single image sees in training (zero outside the image), whatever the batch."""
-    out = torch.zeros(len(images), NUM_IMAGE_CHANNELS, height, width)
+def batch_channels(
+    images: list[np.ndarray], height: int, width: int, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """Channels per image, zero-padded into a (B, 12, height, width) batch on `device`: exactly
+    what a single image sees in training (zero outside the image), whatever the batch."""
+    out = torch.zeros(len(images), NUM_IMAGE_CHANNELS, height, width, device=device)
     for i, r in enumerate(images):
-        out[i, :, : r.shape[0], : r.shape[1]] = image_channels(torch.from_numpy(r)[None])[0]
+        pixels = torch.from_numpy(r).to(device)[None]
+        out[i, :, : r.shape[0], : r.shape[1]] = image_channels(pixels)[0]
     return out

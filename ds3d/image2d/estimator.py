@@ -88,15 +88,32 @@ class PoseEstimator2D:
         self.jointnet = jointnet
         self._layers_of: dict[int, list[Forest]] = {}  # the layers cut short, per tree count
 
+    @property
+    def device(self) -> torch.device:
+        """Where the model lives and the 2D stage runs (PoseEstimator2D.to)."""
+        return self.mixtures.mean.device
+
+    def to(self, device: torch.device | str) -> PoseEstimator2D:
+        """The estimator with every part of its model on `device`: the images go there once
+        their crops are resized (on the CPU, with OpenCV), and every step of estimate() and
+        propose() runs there."""
+        return PoseEstimator2D(
+            [forest.to(device) for forest in self.layers],
+            self.mixtures.to(device),
+            self.params,
+            None if self.facing is None else self.facing.to(device),
+            None if self.jointnet is None else self.jointnet.to(device),
+        )
+
     @classmethod
     def load(cls, model_dir: Path | str | None = None, device: str = "cpu") -> PoseEstimator2D:
-        """The model in `model_dir` (default: models/image2d; ds3d.image2d.model_files), its
-        joint network on `device` (the forests, the PSM and the rest stay on the CPU).
-        Raises DataFormatError when it is missing or malformed."""
+        """The model in `model_dir` (default: models/image2d; ds3d.image2d.model_files) on
+        `device` (PoseEstimator2D.to). Raises DataFormatError when it is missing or
+        malformed."""
         model_dir = Path(model_dir) if model_dir is not None else MODELS_DIR / "image2d"
         model = load_model(require_models(model_dir))
-        jointnet = None if model.jointnet is None else model.jointnet.to(device)
-        return cls(model.layers, model.mixtures, model.params, model.facing, jointnet)
+        estimator = cls(model.layers, model.mixtures, model.params, model.facing, model.jointnet)
+        return estimator if torch.device(device).type == "cpu" else estimator.to(device)
 
     def scales(self) -> list[float]:
         p = self.params
@@ -140,7 +157,7 @@ class PoseEstimator2D:
         if views is not None:
             crops = [replace(c, views=v) for c, v in zip(crops, views, strict=True)]
         scales = list(scales) if scales is not None else self.scales()
-        parts = split_rows(len(crops))
+        parts = self._parts(len(crops))
         results = map_on_threads(
             lambda rows: self._estimate_crops([crops[i] for i in rows], scales), parts
         )
@@ -176,7 +193,14 @@ class PoseEstimator2D:
             extent, weight = p.canonical_extent, p.unary_weight
             return propose(jointnet, self.mixtures, part, extent, weight, search)
 
-        return [found for part in map_on_threads(run, split_rows(len(images))) for found in part]
+        return [found for part in map_on_threads(run, self._parts(len(images))) for found in part]
+
+    def _parts(self, n: int) -> list[torch.Tensor]:
+        """Rows 0..n-1 split over CPU threads (ds3d.util.threads) on the CPU; on another device
+        one part, whose kernels the device runs in parallel itself."""
+        if self.device.type == "cpu":
+            return split_rows(n)
+        return [torch.arange(n)]
 
     def _estimate_crops(self, crops: list[Crop], scales: list[float]) -> Estimate2D:
         """estimate() of crops on the calling thread, before the left/right decision; sets
@@ -207,7 +231,7 @@ class PoseEstimator2D:
                     for rel in scales
                 ]
             )
-            choice = score.argmax(dim=0)  # (B,) index into scales
+            choice = score.argmax(dim=0).cpu()  # (B,) index into scales
             best = self._chosen_scales(crops, scales, choice, full, timings)
         best.timings = timings
         return best
@@ -256,7 +280,7 @@ class PoseEstimator2D:
         t1 = time.perf_counter()
         read = [_read_logits(crop, image) for crop, image in zip(crops, resized, strict=True)]
         missing = [i for i, r in enumerate(read) if r is None]
-        labs = [lab_channels(torch.from_numpy(resized[i])[None]) for i in missing]
+        labs = [lab_channels(self._upload(resized[i])) for i in missing]
         computed = dict(zip(missing, padded_logits_each(jointnet, labs), strict=True))
         logits = [computed[i] if r is None else r for i, r in enumerate(read)]
         grids = [
@@ -267,12 +291,16 @@ class PoseEstimator2D:
         gh, gw = (bucket(max(g.shape[k] for g in grids)) for k in (2, 3))
         unaries = torch.cat([pad_maps(unaries_from_logits(g), gh, gw) for g in grids])
         pose = infer(unaries * p.unary_weight, self.mixtures, stride=float(STRIDE)).joints_2d
-        extent = (pose.amax(1) - pose.amin(1)).amax(-1)  # (B,) px at the base scale
+        extent = (pose.amax(1) - pose.amin(1)).amax(-1).cpu()  # (B,) px at the base scale
         choice = nearest_scale(p.canonical_extent / extent * scales[base], scales)
         timings["features"] += t1 - t0
         timings["jointnet"] += t2 - t1
         timings["psm"] += time.perf_counter() - t2
         return choice, base, logits
+
+    def _upload(self, image: np.ndarray) -> torch.Tensor:
+        """(H, W, 3) uint8 -> (1, H, W, 3) on the estimator's device."""
+        return torch.from_numpy(image).to(self.device)[None]
 
     def _first_trees(self, k: int | None) -> list[Forest]:
         """The layers cut to their first k trees (None: all), made once per k (a new Forest
@@ -325,10 +353,11 @@ class PoseEstimator2D:
                 for r, c in zip(resized, crops, strict=True)
             ],
             dtype=torch.float32,
+            device=working.device,
         )  # (B, 2) working px per image px, (x, y)
-        off = torch.tensor([[c.x0, c.y0] for c in crops], dtype=torch.float32)
+        off = fac.new_tensor([[c.x0, c.y0] for c in crops])
         joints = (working + 0.5) / fac[:, None] - 0.5 + off[:, None]
-        affine = torch.zeros(len(crops), 2, 3)
+        affine = fac.new_zeros(len(crops), 2, 3)
         affine[:, 0, 0] = p.stride / fac[:, 0]
         affine[:, 1, 1] = p.stride / fac[:, 1]
         affine[:, :, 2] = 0.5 / fac - 0.5 + off
@@ -355,7 +384,7 @@ class PoseEstimator2D:
         """The unaries and PSM pose of the images[rows], one group of _one_scale (arguments as
         there). Returns (rows (b,) long, the group's _GroupPose)."""
         group = [images[i] for i in rows]
-        channels, sizes = group_channels(group, timings)
+        channels, sizes = group_channels(group, timings, self.device)
         jointnet = self.jointnet if final and p.jointnet_weight > 0 else None
         with_net = jointnet is not None
         cells = None
@@ -368,7 +397,7 @@ class PoseEstimator2D:
             timings["jointnet"] += time.perf_counter() - t1
         unaries = group_unaries(group, channels, layers, self.mixtures, p, timings, cells)
         t1 = time.perf_counter()
-        faces = torch.ones(len(rows))
+        faces = channels.new_ones(len(rows))
         if with_net:  # the joint network's maps settle left and right
             unaries, res, faces = settle_left_right(unaries, net, self.mixtures, p)
             # The centroid sharpens the sum of the two, as the PSM weighs them.

@@ -30,7 +30,7 @@ CHAINS = (((8, 7, 6), (9, 10, 11)), ((2, 1, 0), (3, 4, 5)))
 def observer_order(joints: torch.Tensor) -> torch.Tensor:
     """(B, 14, 2) poses (x, y) -> (B, 14) long: the joint order that relabels each arm (leg)
     pair so that the one whose shoulder (hip) has the smaller x is the right one."""
-    order = torch.arange(joints.shape[-2]).repeat(len(joints), 1)
+    order = torch.arange(joints.shape[-2], device=joints.device).repeat(len(joints), 1)
     for right, left in CHAINS:
         swap = joints[:, right[0], 0] > joints[:, left[0], 0]  # (B,)
         for r, k in zip(right, left, strict=True):
@@ -79,9 +79,9 @@ def crop(
     -> (B, 3, size, size) float32. Output pixel k reads centre + (k - (size - 1) / 2) * zoom.
     """
     b, _, h, w = lab.shape
-    step = torch.ones(b) if zoom is None else zoom
+    step = lab.new_ones(b) if zoom is None else zoom
     sx = step if flip is None else torch.where(flip, -step, step)
-    k = torch.arange(size, dtype=torch.float32) - (size - 1) / 2
+    k = torch.arange(size, dtype=torch.float32, device=lab.device) - (size - 1) / 2
     xs = centre[:, 0, None] + k[None] * sx[:, None]  # (B, size)
     ys = centre[:, 1, None] + k[None] * step[:, None]
     grid = torch.stack(
@@ -105,7 +105,7 @@ def faces_camera_probability(
     pixels and run alone, so a result does not depend on the batch it came in.
     """
     centres = crop_centre(joints.float())
-    out = torch.empty(len(sizes))
+    out = lab.new_empty(len(sizes))
     with torch.no_grad():
         for i, (h, w) in enumerate(sizes):
             window = crop(lab[i : i + 1, :, :h, :w], centres[i : i + 1])

@@ -36,7 +36,8 @@ _SRGB_TO_LINEAR = _srgb_to_linear_table()
 
 def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     """sRGB (D65) to CIE Lab. rgb: (B, 3, H, W) uint8 -> (B, 3, H, W) float32, L in [0, 100]."""
-    linear = _SRGB_TO_LINEAR[rgb.long()]  # a table lookup: pow(2.4) per pixel is costly on CPU
+    # a table lookup: pow(2.4) per pixel is costly on CPU
+    linear = _SRGB_TO_LINEAR.to(rgb.device)[rgb.long()]
     m = torch.tensor(
         [
             [0.412453 / 0.950456, 0.357580 / 0.950456, 0.180423 / 0.950456],
@@ -44,6 +45,7 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
             [0.019334 / 1.088754, 0.119193 / 1.088754, 0.950227 / 1.088754],
         ],
         dtype=linear.dtype,
+        device=linear.device,
     )
     xyz = torch.einsum("ij,bjhw->bihw", m, linear)
     delta = 6.0 / 29.0
@@ -92,7 +94,7 @@ def image_channels(images: torch.Tensor) -> torch.Tensor:
     frac = theta - lo
     lo = lo.long() % NUM_ORIENTATIONS
     hi = (lo + 1) % NUM_ORIENTATIONS
-    hist = torch.zeros(mag.shape[0], NUM_ORIENTATIONS, *mag.shape[1:])
+    hist = mag.new_zeros(mag.shape[0], NUM_ORIENTATIONS, *mag.shape[1:])
     hist.scatter_add_(1, lo.unsqueeze(1), (mag * (1 - frac)).unsqueeze(1))
     hist.scatter_add_(1, hi.unsqueeze(1), (mag * frac).unsqueeze(1))
     hist = box_mean(hist, 2)
@@ -149,7 +151,7 @@ def pad_channels(channels: torch.Tensor, radius: int) -> torch.Tensor:
     -> (B, C + 1, H + 2r, W + 2r). A comparison with use2 = 0 reads its second value from the zero
     plane, so every comparison is the same two gathers and one subtraction."""
     b, c, h, w = channels.shape
-    out = torch.zeros(b, c + 1, h + 2 * radius, w + 2 * radius, dtype=channels.dtype)
+    out = channels.new_zeros(b, c + 1, h + 2 * radius, w + 2 * radius)
     out[:, :c, radius : radius + h, radius : radius + w] = channels
     return out
 

@@ -75,6 +75,10 @@ class Forest:
             roots=self.roots[:k],
         )
 
+    def to(self, device: torch.device | str) -> Forest:
+        """The forest with its tensors on `device`."""
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in _TENSORS})
+
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
@@ -83,6 +87,7 @@ class Forest:
         return cls(**{f.name: d[f.name] for f in fields(cls)})
 
 
+_TENSORS = [f for f in fields(Forest) if f.type == "torch.Tensor"]
 _NODE_FIELDS = ("channel", "dy1", "dx1", "dy2", "dx2", "use2", "threshold", "left", "leaf")
 
 
@@ -106,7 +111,9 @@ def traverse(forest: Forest, padded: torch.Tensor, positions: torch.Tensor) -> t
     flat = padded.reshape(-1)
     pix = (positions[..., 0] + r) * wp + positions[..., 1] + r  # (P,) or (B, P)
     n_pix = pix.shape[-1]
-    start = (torch.arange(b) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(-1, 1, n_pix)
+    start = (torch.arange(b, device=padded.device) * (c1 * hp * wp)).view(b, 1, 1) + pix.view(
+        -1, 1, n_pix
+    )
     start = start.expand(b, forest.n_trees, -1).reshape(-1).int()
     node = forest.roots.view(1, -1, 1).expand(b, -1, n_pix).reshape(-1).int()
     table = forest.node_table

@@ -164,7 +164,7 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     runs on more zeros below and right of that border, up to the bucket of each side at
     NET_BUCKET_STEPS per octave (ds3d.image2d.buckets). Computed in the network's dtype and on
     its device: bfloat16 as load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or
-    a float32 network under bfloat16 autocast there, as trained; returned on the CPU."""
+    a float32 network under bfloat16 autocast there, as trained; returned on its device."""
     height, width = lab.shape[-2:]
     return _crop_logits(_run(net, _net_input(lab)), height, width).contiguous()
 
@@ -202,14 +202,13 @@ def _net_input(lab: Tensor) -> Tensor:
 
 def _run(net: JointNet, padded: Tensor) -> Tensor:
     """The network on its padded input (B, 3, H', W') in its dtype and on its device (as
-    padded_logits) -> (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on the CPU."""
+    padded_logits) -> (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on its device."""
     weight = next(net.parameters(), padded)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
         padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)
-        # back on the CPU, where the cascade and the PSM read it
-        return net(padded).float().cpu()
+        return net(padded).float()
 
 
 def _crop_logits(logits: Tensor, height: int, width: int) -> Tensor:
@@ -260,7 +259,8 @@ def resampled_logits(
     oh, ow = source.shape[-2:]
     axes = []
     for size, cells, k in ((width, ow, 0), (height, oh, 1)):
-        px = torch.arange(-(-(size + 2 * MARGIN) // STRIDE), dtype=torch.float32) * STRIDE - MARGIN
+        cells_out = -(-(size + 2 * MARGIN) // STRIDE)
+        px = torch.arange(cells_out, dtype=torch.float32, device=source.device) * STRIDE - MARGIN
         cell = (scale[k] * px + offset[k] + MARGIN) / STRIDE  # source cells
         axes.append(cell / max(cells - 1, 1) * 2 - 1)
     xs, ys = axes
@@ -283,8 +283,8 @@ def logits_to_grid(
     right; they are read at the mirrored pixels, left and right swapped, so that they describe
     the images themselves."""
     gh, gw = -(-height // stride), -(-width // stride)
-    ys = (torch.arange(gh, dtype=torch.float32) * stride + MARGIN) / STRIDE
-    px = torch.arange(gw, dtype=torch.float32) * stride
+    ys = (torch.arange(gh, dtype=torch.float32, device=logits.device) * stride + MARGIN) / STRIDE
+    px = torch.arange(gw, dtype=torch.float32, device=logits.device) * stride
     xs = ((width - 1 - px if mirrored else px) + MARGIN) / STRIDE
     oh, ow = logits.shape[-2:]
     grid = torch.stack(
@@ -361,7 +361,8 @@ def jointnet_unaries(
     mirrored: list[Tensor | None] = [None] * len(labs)
     if flip_test:
         mirrored = list(padded_logits_each(net, [lab.flip(-1) for lab in labs]))
-    out = torch.full((len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride)), np.log(LOG_EPS))
+    shape = (len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride))
+    out = channels.new_full(shape, np.log(LOG_EPS))
     for i, (hi, wi) in enumerate(sizes):
         grid = _grid_logits(logits[i], mirrored[i], hi, wi, stride)
         out[i, :, : grid.shape[2], : grid.shape[3]] = unaries_from_logits(grid)[0]

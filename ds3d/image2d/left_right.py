@@ -84,5 +84,5 @@ def facing_probability(
     (ds3d.image2d.facing). channels: (B, 12, H, W), zero-padded; joints: (B, 14, 2) (x, y)
     px on them; sizes: B (h, w) -> (B,) float32 (1 for a model without a facing model)."""
     if facing is None:
-        return torch.ones(channels.shape[0])
+        return channels.new_ones(channels.shape[0])
     return faces_camera_probability(facing, channels[:, :3], joints, sizes)

@@ -80,7 +80,7 @@ class Estimate2D:
 
 def pad_maps(maps: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """Pad (B, 14, h0, w0) log-prob maps to (B, 14, h, w) with log(LOG_EPS)."""
-    out = torch.full((*maps.shape[:2], h, w), float(np.log(LOG_EPS)), dtype=maps.dtype)
+    out = maps.new_full((*maps.shape[:2], h, w), float(np.log(LOG_EPS)))
     out[:, :, : maps.shape[2], : maps.shape[3]] = maps
     return out
 

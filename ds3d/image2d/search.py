@@ -159,15 +159,18 @@ def propose(
     docstring, on the calling thread. The levels of all images go through the network together
     (jointnet.padded_logits_each) and their PSMs in groups of one grid shape, so that neither
     runs one small level at a time. canonical_extent: px of a person at the working scale;
-    unary_weight: the PSM's weight on its unaries (EstimatorParams)."""
+    unary_weight: the PSM's weight on its unaries (EstimatorParams). Runs on the network's
+    device."""
     pool = max(params.psm_stride // STRIDE, 1)
+    device = next(net.parameters()).device
     levels = []  # (image index, the image resized to the level)
     for i, image in enumerate(images):
         for extent in level_extents(image.shape[0], params):
             resized = resize_image(image, canonical_extent / extent)
             if min(resized.shape[:2]) >= 2 * STRIDE * pool:  # else smaller than a few PSM cells
                 levels.append((i, resized))
-    logits = padded_logits_each(net, [lab_channels(torch.from_numpy(r)[None]) for _, r in levels])
+    labs = [lab_channels(torch.from_numpy(r).to(device)[None]) for _, r in levels]
+    logits = padded_logits_each(net, labs)
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
         grid = logits_to_grid(lg, resized.shape[0], resized.shape[1], STRIDE)
@@ -207,7 +210,10 @@ def _level_people(
         found = upward.poses(padded)
         for k, (i, p) in enumerate(zip(rows, peaks, strict=True)):
             n = len(p)
-            out[i] = (found.joints_2d[k, :n].numpy(), found.score[k, :n].float().numpy())
+            out[i] = (
+                found.joints_2d[k, :n].cpu().numpy(),
+                found.score[k, :n].float().cpu().numpy(),
+            )
     return [out[i] for i in range(len(unaries))]
 
 
