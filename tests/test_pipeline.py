@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from ds3d.boxes import person_boxes
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
@@ -251,17 +252,20 @@ def test_the_bundled_confidences_say_how_often_joints_are_right(data_dir):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-def test_the_pipeline_runs_on_cuda_as_on_the_cpu(model_dir, images):
-    """device="cuda": both stages on the GPU, searched and in given boxes; about the same poses
-    (the network's bfloat16 convolutions differ between the devices in their last bits)."""
-    on_cpu = Pipeline.load(model_dir).estimate(images[:2])
-    gpu_pipeline = Pipeline.load(model_dir, device="cuda")
-    assert gpu_pipeline.estimator.device.type == "cuda"
-    assert all(forest.node_table.is_cuda for forest in gpu_pipeline.estimator.layers)
-    on_gpu = gpu_pipeline.estimate(images[:2])
-    assert on_gpu.joints_2d.device.type == "cpu" and on_gpu.joints_3d.device.type == "cpu"
-    assert float((on_gpu.joints_2d - on_cpu.joints_2d).abs().median()) < 2.0  # px
-    assert float((on_gpu.joints_3d - on_cpu.joints_3d).norm(dim=-1).median()) < 20.0  # mm
+def test_the_pipeline_runs_on_cuda_as_on_the_cpu(images):
+    """device="cuda": both stages of the bundled models on the GPU, people searched and in given
+    boxes; about the same poses (the network's bfloat16 convolutions differ between the devices
+    in their last bits)."""
+    on_gpu = Pipeline.load(device="cuda")
+    assert on_gpu.estimator.device.type == "cuda"
+    assert all(forest.node_table.is_cuda for forest in on_gpu.estimator.layers)
+    boxes = list(person_boxes(load_lsp(split="test").joints[: len(images)]))
+    for bboxes in (None, boxes):
+        cpu = Pipeline.load().estimate(images, bboxes)
+        gpu = on_gpu.estimate(images, bboxes)
+        assert gpu.joints_2d.device.type == "cpu" and gpu.joints_3d.device.type == "cpu"
+        assert float((gpu.joints_2d - cpu.joints_2d).abs().median()) < 2.0  # px
+        assert float((gpu.joints_3d - cpu.joints_3d).norm(dim=-1).median()) < 20.0  # mm
 
 
 def test_a_box_the_image_cannot_hold_is_refused_before_any_work(pipeline, images):

@@ -34,3 +34,22 @@ def test_jacobi_resolves_a_pose_scatters_spread_of_variances_in_float32():
     )
     agreement = (vectors[:, :, top].double() * expected.eigenvectors[:, :, top]).sum(1).abs()
     assert float(agreement.min()) > 0.999
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_on_cuda_the_pca_is_lapacks():
+    """symmetric_eigh on a CUDA tensor (the Jacobi method there) against LAPACK's on the CPU."""
+    from ds3d.fit.eigen import symmetric_eigh
+
+    torch.manual_seed(0)
+    samples = torch.randn(64, 128, 42) * torch.logspace(2, -1, 42)
+    scatter = samples.transpose(1, 2) @ samples
+    values, vectors = symmetric_eigh(scatter.cuda())
+    expected = torch.linalg.eigh(scatter)
+    assert values.is_cuda and vectors.is_cuda
+    top = slice(-20, None)
+    torch.testing.assert_close(
+        values[:, top].cpu(), expected.eigenvalues[:, top], rtol=1e-4, atol=0
+    )
+    agreement = (vectors[:, :, top].cpu() * expected.eigenvectors[:, :, top]).sum(1).abs()
+    assert float(agreement.min()) > 0.999
