@@ -6,8 +6,9 @@
 #
 # Each round times MediaPipe (`static_image_mode=True, model_complexity=1`, one LSP test image at
 # a time, the first IMAGES of im1001-im2000, default 64) and then `ds3d bench pipeline --threads
-# $THREADS --batch-sizes 16` (the first 16 LSP test images, people searched: no box), and prints
-# both images/s and their ratio. MediaPipe runs in its own virtual environment ($PEER_VENV,
+# $THREADS --workers $WORKERS --batch-sizes 16` (the first 16 LSP test images, people searched: no
+# box; WORKERS=2 THREADS=1: two processes of one thread, ds3d.workers), and prints both images/s
+# and their ratio. MediaPipe runs in its own virtual environment ($PEER_VENV,
 # default .peer-venv, made at the first run), so that none of its dependencies reach ds3d's.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,6 +16,7 @@ cd "$(dirname "$0")/.."
 ROUNDS=${1:-2}
 IMAGES=${2:-64}
 THREADS=${THREADS:-2}
+WORKERS=${WORKERS:-1}
 DATA=${DS3D_DATA:-../shared/data}
 PEER_VENV=${PEER_VENV:-.peer-venv}
 
@@ -47,9 +49,10 @@ with mp.solutions.pose.Pose(static_image_mode=True, model_complexity=1) as pose:
 print(f"{len(images) / seconds:.2f} {found}")
 PY
     read -r peer found < "$out/peer"
-    .venv/bin/ds3d bench pipeline --threads "$THREADS" --batch-sizes 16 --repeats 2 \
+    .venv/bin/ds3d bench pipeline --threads "$THREADS" --workers "$WORKERS" --batch-sizes 16 \
+        --repeats 2 \
         --out "$out/ds3d.json" > /dev/null 2>&1
     ours=$(.venv/bin/python -c "import json, sys; print(json.load(open(sys.argv[1]))['rows'][0]['images_per_s'])" "$out/ds3d.json")
     ratio=$(.venv/bin/python -c "import sys; print(f'{float(sys.argv[1]) / float(sys.argv[2]):.2f}')" "$ours" "$peer")
-    echo "round $round: MediaPipe Pose full $peer images/s (a pose in $found of $IMAGES images); ds3d searched, batch 16, $THREADS threads: $ours images/s; ds3d / MediaPipe $ratio"
+    echo "round $round: MediaPipe Pose full $peer images/s (a pose in $found of $IMAGES images); ds3d searched, batch 16, $WORKERS x $THREADS threads: $ours images/s; ds3d / MediaPipe $ratio"
 done

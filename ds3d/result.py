@@ -5,6 +5,7 @@ service's answers are written from."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,6 +141,28 @@ class PipelineResult:
             score=torch.zeros(n),
             person_found=torch.zeros(n, dtype=torch.bool),
         )
+
+    @classmethod
+    def concat(cls, parts: Sequence[PipelineResult], images: Sequence[int]) -> PipelineResult:
+        """One result of a batch split by image into consecutive parts: parts[k] the result of
+        the next images[k] images. Each stage's timings_ms are summed over the parts."""
+        offsets = np.cumsum([0, *images[:-1]])
+        fields: dict = {}
+        for f in dataclasses.fields(cls):
+            values = [getattr(part, f.name) for part in parts]
+            if f.name == "image_index":
+                fields[f.name] = torch.cat(
+                    [v + int(o) for v, o in zip(values, offsets, strict=True)]
+                )
+            elif isinstance(values[0], torch.Tensor):
+                fields[f.name] = torch.cat(values)
+            elif isinstance(values[0], list):
+                fields[f.name] = [x for v in values for x in v]
+            elif f.name == "timings_ms":
+                fields[f.name] = {k: sum(v.get(k, 0.0) for v in values) for k in values[0]}
+            else:
+                fields[f.name] = values[0]
+        return cls(**fields)
 
     def rows(self, index: torch.Tensor) -> PipelineResult:
         """The people `index` (K,) int64, in that order."""

@@ -96,9 +96,14 @@ def serving_lifespan(
         executor = model_executor(settings.torch_threads)
         engine = preloaded
         if engine is None:
-            engine = await asyncio.get_running_loop().run_in_executor(
-                executor, partial(Engine.load, settings.model_dir, settings.device)
+            load = partial(
+                Engine.load,
+                settings.model_dir,
+                settings.device,
+                settings.workers,
+                settings.torch_threads,
             )
+            engine = await asyncio.get_running_loop().run_in_executor(executor, load)
         engine.on_timings = metrics.observe_stages
         runtime = start_batchers(engine, executor, settings, metrics)
         app.state.runtime = runtime
@@ -114,6 +119,8 @@ def serving_lifespan(
             if batcher is not None:
                 await batcher.close(drain_timeout_s=settings.request_timeout_s)
         executor.shutdown(wait=True)
+        if preloaded is None:  # the app's own: its worker processes, if any, stop with it
+            engine.close()
 
     return lifespan
 

@@ -17,11 +17,14 @@ import numpy as np
 import torch
 
 from ds3d.errors import DataFormatError
+from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.search import check_searchable
 from ds3d.inputs import focal_length, intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.lifter import Lifter
 from ds3d.pipeline import MIN_SCORE, Pipeline
 from ds3d.result import Person
+from ds3d.util.paths import MODELS_DIR
+from ds3d.workers import PipelineWorkers
 
 
 @dataclass(frozen=True)
@@ -107,12 +110,25 @@ def load_pipeline(model_dir: Path | None, device: str) -> tuple[Pipeline | None,
         return None, f"the model directory has no usable 2D stage: {e}"
 
 
+def missing_2d_stage(model_dir: Path | None) -> str | None:
+    """Why model_dir (None: the bundled models/) has no usable 2D stage, or None when it has."""
+    try:
+        PoseEstimator2D.load((model_dir or MODELS_DIR) / "image2d")
+    except (DataFormatError, FileNotFoundError) as e:
+        return f"the model directory has no usable 2D stage: {e}"
+    return None
+
+
 class Engine:
     """The loaded models. `on_timings(timings_ms)`, when set, is called once per library call
-    (the app points it at its metrics)."""
+    (the app points it at its metrics). `pipeline`: a Pipeline, or a PipelineWorkers whose
+    processes split each /v1/pose batch; close() stops those."""
 
     def __init__(
-        self, lifter: Lifter, pipeline: Pipeline | None = None, pose_unavailable: str | None = None
+        self,
+        lifter: Lifter,
+        pipeline: Pipeline | PipelineWorkers | None = None,
+        pose_unavailable: str | None = None,
     ):
         self.lifter = lifter
         self.pipeline = pipeline
@@ -121,12 +137,28 @@ class Engine:
         self._call_ids = itertools.count()
 
     @classmethod
-    def load(cls, model_dir: Path | None, device: str = "cpu") -> Engine:
+    def load(
+        cls, model_dir: Path | None, device: str = "cpu", workers: int = 1, threads: int = 1
+    ) -> Engine:
         """The models of model_dir (None: the bundled models/). /v1/lift needs its pose database;
-        /v1/pose also its 2D stage. The pipeline's lifter serves /v1/lift too (loaded once)."""
-        pipeline, why = load_pipeline(model_dir, device)
-        lifter = pipeline.lifter if pipeline is not None else Lifter.load(model_dir, device=device)
-        return cls(lifter, pipeline, why)
+        /v1/pose also its 2D stage. With one worker the pipeline's lifter serves /v1/lift too
+        (loaded once); with more, /v1/pose runs on a PipelineWorkers of `workers` processes of
+        `threads` torch threads, and /v1/lift on a lifter of this process."""
+        if workers == 1:
+            pipeline, why = load_pipeline(model_dir, device)
+            lifter = (
+                pipeline.lifter if pipeline is not None else Lifter.load(model_dir, device=device)
+            )
+            return cls(lifter, pipeline, why)
+        lifter = Lifter.load(model_dir, device=device)
+        if why := missing_2d_stage(model_dir):
+            return cls(lifter, None, why)
+        return cls(lifter, PipelineWorkers(workers, threads, model_dir=model_dir, device=device))
+
+    def close(self) -> None:
+        """Stops the pipeline's worker processes, where it has them."""
+        if isinstance(self.pipeline, PipelineWorkers):
+            self.pipeline.close()
 
     @property
     def model_id(self) -> str:

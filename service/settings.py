@@ -91,6 +91,15 @@ class Settings(BaseSettings):
         "cores for one process (docs/tuning.md, service); replicas, one per core, set 1 "
         "(docker/docker-compose.yml).",
     )
+    workers: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="Processes of /v1/pose's pipeline, each its own models (about 1 GB) with "
+        "torch_threads threads, that split each batch (ds3d.workers). On a CPU, processes "
+        "give more images/s than as many threads: two of one thread each on two cores. 1: the "
+        "pipeline runs on the model thread itself.",
+    )
     max_image_bytes: int = Field(
         10 * 1024 * 1024,
         ge=1,

@@ -17,7 +17,7 @@ import torch
 from ds3d.cli.image2d import INFERENCE_OVERRIDE, load_estimator
 from ds3d.cli.lift import LIFTER_OVERRIDE, load_lifter
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_model_options, add_set_option, write_report
-from ds3d.cli.pipeline import load_pipeline
+from ds3d.cli.pipeline import add_workers_option, load_pipeline
 from ds3d.skeleton import SET_NAMES
 from ds3d.util.memory import glibc_heap_mb, loaded_allocator, malloc_trim, resident_mb
 from ds3d.util.progress import progress
@@ -68,6 +68,7 @@ def register(commands, evals, benches) -> None:
     )
     p.add_argument("--out", type=Path, help="JSON report")
     add_model_options(p, device=True)
+    add_workers_option(p)
     p.set_defaults(func=bench_pipeline)
 
 
@@ -264,6 +265,7 @@ def bench_pipeline(args) -> int:
     report = {
         "device": args.device,
         "threads": args.threads,
+        "workers": args.workers,
         "boxes": args.boxes,
         "iterations": pipeline.config.iterations,
         "rows": rows,

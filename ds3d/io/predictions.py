@@ -28,6 +28,7 @@ from ds3d.pipeline import MIN_SCORE, Pipeline
 from ds3d.result import Person
 from ds3d.tracking import Tracker
 from ds3d.viz.overlay import plot
+from ds3d.workers import PipelineWorkers
 
 log = logging.getLogger("ds3d")
 
@@ -115,7 +116,7 @@ def _default_pipeline(device: str) -> Pipeline:
 
 def predict(
     sources: Iterable | str | os.PathLike | np.ndarray,
-    pipeline: Pipeline | None = None,
+    pipeline: Pipeline | PipelineWorkers | None = None,
     *,
     batch_size: int = 16,
     stride: int = 1,
@@ -129,7 +130,8 @@ def predict(
     on_skip: Callable[[Frame], None] = _log_skip,
 ) -> Iterator[Prediction]:
     """A Prediction per readable image or frame of `sources`, in order, estimated `batch_size`
-    at a time by `pipeline` (default: the bundled models, loaded once per process on `device`).
+    at a time by `pipeline` (default: the bundled models, loaded once per process on `device`;
+    or a ds3d.workers.PipelineWorkers, its batches split among its processes).
     stride: every n-th frame of a video or camera; bbox: one person box (x0, y0, x1, y1) px for
     every image (default: people are searched for); people, min_score, iterations, focal_px:
     as Pipeline.estimate. The people of a video's or a camera's frames are tracked, each with

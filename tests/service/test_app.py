@@ -10,6 +10,7 @@ import struct
 import threading
 import time
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import numpy as np
@@ -26,6 +27,7 @@ from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
 from ds3d.util.paths import MODELS_DIR
 from ds3d.util.threads import intra_op_threads
 from service.client import AsyncPoseClient, PoseClient, ServiceError
+from service.engine import Engine
 from service.settings import Settings
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
@@ -444,3 +446,21 @@ def test_people_all_and_nobody(engine, serving):
         # a box given skips the search: the person is where the caller says
         boxed = client.estimate(blank, bbox=[100, 100, 300, 400])
         assert boxed.person_found
+
+
+def test_pose_on_worker_processes_answers_as_one_process(engine, serving):
+    """DS3D_WORKERS=2: /v1/pose's batches split between two processes of the bundled models
+    answer as the pipeline of this process does (2D alike, 3D up to the fit's rounding, which
+    depends on how many people are lifted together)."""
+    paths = load_lsp(split="test").image_paths[:4]
+    pooled = Engine.load(MODEL_DIR, "cpu", workers=2, threads=1)
+    try:
+        with serving(pooled, max_batch_size=4, max_wait_ms=200) as u, PoseClient(u) as client:
+            with ThreadPoolExecutor(4) as calls:
+                answers = list(calls.map(client.estimate, paths))
+    finally:
+        pooled.close()
+    ref = engine.pipeline.estimate([read_image(p) for p in paths])
+    for i, res in enumerate(answers):
+        np.testing.assert_allclose(res.joints_2d, ref.joints_2d[i].numpy(), atol=1e-2)
+        np.testing.assert_allclose(res.joints_3d, ref.joints_3d[i].numpy(), atol=1.0)
