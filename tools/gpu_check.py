@@ -19,8 +19,9 @@ wrote), and the tail of its log (OUT/STEP.log). The steps:
   lift_cuda     ds3d bench lift on CUDA, batch 1, 64, 1,024 and 8,192
   pipeline_cuda ds3d bench pipeline on CUDA, people searched, batch 1 and 64; `_boxes`: each
                 image's own box
-  pipeline_cpu  the same on the CPU alone (CUDA_VISIBLE_DEVICES empty), 2 and all threads
-                (`_2`, `_all`): how the CPU path scales with cores
+  pipeline_cpu  the same on the CPU alone (CUDA_VISIBLE_DEVICES empty): 2 threads, all
+                threads, and half as many worker processes of 2 threads as there are cores
+                (`_2`, `_all`, `_workers`, ds3d.workers): how the CPU path scales with cores
   eval_lsp      ds3d eval lsp on the packed test images, CUDA and CPU
   eval_h36m     ds3d eval h36m on the packed S11 frames, CUDA and CPU
   serve         ds3d-serve on CUDA, /v1/pose at concurrency 64 and /v1/lift (tools.loadtest)
@@ -166,9 +167,14 @@ def run(out: Path, data: Path | None, wheels: Path | None) -> dict:
     step("pipeline_cuda", [*pipeline, "--device", "cuda", "--batch-sizes", "1,64"], 120)
     boxes = [*pipeline, "--device", "cuda", "--batch-sizes", "64", "--boxes"]
     step("pipeline_cuda_boxes", boxes, 60)
-    for name, threads, batches in (("2", "2", "16"), ("all", cores, "16,64")):
-        command = [*pipeline, "--device", "cpu", "--threads", threads, "--batch-sizes", batches]
-        step(f"pipeline_cpu_{name}", command, 90, cpu_only)
+    half = str(max(1, int(cores) // 2))
+    for name, workers, threads, batches in (
+        ("2", "1", "2", "16"),
+        ("all", "1", cores, "16,64"),
+        ("workers", half, "2", "16,64"),
+    ):
+        command = [*pipeline, "--device", "cpu", "--workers", workers, "--threads", threads]
+        step(f"pipeline_cpu_{name}", [*command, "--batch-sizes", batches], 90, cpu_only)
     for device, environment in (("cuda", env), ("cpu", cpu_only)):
         step(f"eval_lsp_{device}", [*lsp, "--device", device], 90, environment)
         step(f"eval_h36m_{device}", [*h36m, "--device", device, "--out", "{json}"], 60, environment)
