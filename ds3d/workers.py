@@ -1,12 +1,12 @@
 """Whole images of a batch on several worker processes, each with its own Pipeline.
 
 The threads of one process share its interpreter lock, and the 2D stage's Python between its
-torch ops holds it for about a fifth of the stage's time (py-spy --gil, one thread): on 2 cores a
-second thread gave a batch of 16 LSP images 1.2-1.4x the images/s of one, where a second process
-doubled them (docs/RESULTS.md, speed). `PipelineWorkers` starts N processes, each loading its own
-Pipeline with T torch threads (about 1 GB each), and splits every batch into N contiguous parts of
-whole images, run at once. The processes are spawned, not forked: torch's and OpenMP's thread
-pools do not survive a fork.
+torch ops holds it for about a fifth of the stage's time (py-spy --gil, one thread): on 2 cores
+two threads gave a batch of 16 LSP images 1.2-1.4x the images/s of one, where two processes of
+one thread each gave 1.7x (docs/RESULTS.md, worker processes). `PipelineWorkers` starts N
+processes, each loading its own Pipeline with T torch threads (about 1 GB each), and splits every
+batch into N contiguous parts of whole images, run at once. The processes are spawned, not
+forked: torch's and OpenMP's thread pools do not survive a fork.
 """
 
 from __future__ import annotations
