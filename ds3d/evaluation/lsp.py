@@ -65,8 +65,8 @@ def evaluate_2d(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> 
         for i in range(0, len(ann), batch):
             images = [read_image(p) for p in ann.image_paths[i : i + batch]]
             res = est.estimate(images)
-            preds.append(res.joints_2d)
-            argmax.append(argmax_joints(res))
+            preds.append(res.joints_2d.cpu())  # from the estimator's device
+            argmax.append(argmax_joints(res).cpu())
             bar.update(len(images))
     seconds = time.perf_counter() - t0
     gt = torch.from_numpy(ann.joints)
@@ -116,7 +116,7 @@ def evaluate_refinement(
             t0 = time.perf_counter()
             estimate = pipeline.estimator.estimate(images)
             seconds["2d"] += time.perf_counter() - t0
-            preds["initial"].append(estimate.joints_2d)
+            preds["initial"].append(estimate.joints_2d.cpu())
             for name in names:
                 t0 = time.perf_counter()
                 pipeline.config, lifter_config = variant_configs(name, overrides)
