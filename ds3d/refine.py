@@ -11,6 +11,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ds3d.image2d.buckets import bucket
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
 from ds3d.image2d.result import LOG_EPS, Estimate2D
@@ -126,32 +127,50 @@ def refine(
         iterations=config.kmeans_iterations,
     )
 
-    def solve(rows: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """(cells (S, 14, 2), score (S,)) of the S problems of each image in rows."""
-        out = []
+    def solve(rows: torch.Tensor) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
+        """(image, cells (S, 14, 2), score (S,)) of the S problems of each image in rows: the
+        images whose windows pad to one size bucket (ds3d.image2d.buckets) as one batch, the
+        padding -inf, where no joint can go, so that each answers as its own window alone."""
+        groups: dict[tuple[int, int], list[int]] = {}
         for i in rows.tolist():
-            window, part = windows[i][0], slice(i * s, (i + 1) * s)
-            pooled, best = F.max_pool2d(window[None], pool, ceil_mode=True, return_indices=True)
+            height, width = windows[i][0].shape[-2:]
+            groups.setdefault((bucket(height), bucket(width)), []).append(i)
+        out = []
+        for (height, width), images in groups.items():
+            stack = torch.stack([_pad(windows[i][0], height, width) for i in images])
+            pooled, best = F.max_pool2d(stack, pool, ceil_mode=True, return_indices=True)
+            problems = torch.tensor([i * s + k for i in images for k in range(s)])
+            binaries = (
+                mixtures.mean[problems],
+                mixtures.var[problems],
+                mixtures.log_gamma[problems],
+            )
             res = infer(
-                (unary_weight * pooled).expand(s, -1, -1, -1),
-                PairwiseMixtures(mixtures.mean[part], mixtures.var[part], mixtures.log_gamma[part]),
-                stride=1.0,
+                (unary_weight * pooled).repeat_interleave(s, 0), PairwiseMixtures(*binaries), 1.0
             )
             # each joint's pooled cell -> the cell of the window its maximum came from
-            flat = (
-                best.flatten(2)
-                .expand(s, -1, -1)
-                .gather(2, (res.cells[..., 1] * pooled.shape[-1] + res.cells[..., 0])[..., None])[
-                    ..., 0
-                ]
-            )
-            width = window.shape[-1]
+            at = res.cells[..., 1] * pooled.shape[-1] + res.cells[..., 0]  # (n S, 14)
+            flat = best.repeat_interleave(s, 0).flatten(2).gather(2, at[..., None])[..., 0]
             fine = torch.stack([flat % width, flat // width], -1)
-            out.append((params.joint_cells(window[None].expand(s, -1, -1, -1), fine), res.score))
+            found = params.joint_cells(stack.repeat_interleave(s, 0), fine).view(
+                -1, s, NUM_JOINTS, 2
+            )
+            score = res.score.view(-1, s)
+            out += [(i, found[j], score[j]) for j, i in enumerate(images)]
         return out
 
-    # One image at a time (each its own window), so whole images go to parallel threads.
-    solved = [one for part in map_on_threads(solve, split_rows(b)) for one in part]
-    found = torch.stack([c for c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
+    # Whole images to parallel threads, each its own window.
+    solved = sorted(
+        (one for part in map_on_threads(solve, split_rows(b)) for one in part),
+        key=lambda one: one[0],
+    )
+    found = torch.stack([c for _, c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
     joints_2d = cells_to_image(found, estimate.map_to_image).view(b, s, NUM_JOINTS, 2)
-    return Refinement(joints_2d, torch.stack([score for _, score in solved]))
+    return Refinement(joints_2d, torch.stack([score for _, _, score in solved]))
+
+
+def _pad(window: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(14, h, w) -> (14, height, width), -inf below and right."""
+    return F.pad(
+        window, (0, width - window.shape[-1], 0, height - window.shape[-2]), value=-torch.inf
+    )
