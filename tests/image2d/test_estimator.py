@@ -203,3 +203,20 @@ def test_estimate_rejects_bad_inputs():
         est.estimate([np.zeros((10, 10), dtype=np.uint8)])
     with pytest.raises(ValueError):
         est.estimate([np.zeros((10, 10, 3), dtype=np.uint8)], bboxes=[(5, 5, 2, 2)])
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_an_estimator_moved_to_a_device_answers_alike(small_model):
+    """PoseEstimator2D.to moves every part of the model (here to the CPU it is on, as a GPU
+    machine's check does to CUDA: tests/test_pipeline.py) and answers alike."""
+    est = PoseEstimator2D.load(small_model)
+    moved = est.to("cpu")
+    assert moved is not est and moved.device.type == "cpu"
+    assert all(f.node_table.device.type == "cpu" for f in moved.layers)
+    rng = np.random.default_rng(2)
+    images = [rng.integers(0, 256, s, dtype=np.uint8) for s in ((150, 90, 3), (200, 260, 3))]
+    with intra_op_threads(1):
+        for name in ("joints_2d", "score", "unaries"):
+            torch.testing.assert_close(
+                getattr(moved.estimate(images), name), getattr(est.estimate(images), name)
+            )
