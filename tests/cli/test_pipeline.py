@@ -137,3 +137,24 @@ def test_eval_lsp_pipeline_scores_the_searched_pipeline_beside_the_crops(data_di
     report = json.loads(out.read_text())
     assert {"initial", "full/iteration1", "searched"} <= set(report["results"])
     assert 0.0 <= report["results"]["searched"]["pck@0.2"] <= 1.0
+
+
+def test_predict_on_worker_processes_writes_what_one_process_does(data_dir, tmp_path):
+    """--workers 2: the batch split between two processes of the bundled models; the same 2D
+    joints per image as one process (the 3D within the fit's rounding)."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for path in load_lsp(split="test").image_paths[:3]:
+        (images / path.name).write_bytes(path.read_bytes())
+    answers = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"out{workers}"
+        args = ["--quiet", "predict", str(images), "--out", str(out), "--workers", workers]
+        assert cli([*args, "--threads", "1"]) == 0
+        lines = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
+        answers[workers] = {a["source"]: a["people"][0] for a in lines}
+    assert answers["1"].keys() == answers["2"].keys() and len(answers["1"]) == 3
+    for source, alone in answers["1"].items():
+        pooled = answers["2"][source]
+        np.testing.assert_allclose(pooled["joints_2d"], alone["joints_2d"], atol=1e-3)
+        np.testing.assert_allclose(pooled["joints_3d"], alone["joints_3d"], atol=1.0)
