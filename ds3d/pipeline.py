@@ -163,21 +163,21 @@ class Pipeline:
     ) -> PipelineResult:
         """2D and 3D poses of the people in B images.
 
-        images: B arrays (H_i, W_i, 3) uint8 RGB; bboxes: None or B entries, each None or a
-        person box (x0, y0, x1, y1) px: an image with a box is estimated in it, one without is
-        searched for people (ds3d.image2d.search); intrinsics: None (weak perspective) or
-        (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides config.iterations;
-        focal_px: without intrinsics, the focal length of the camera that took the images, for
-        every image or one per image, which places the people in its coordinates
-        (PipelineResult.root_position; None: an assumed one, ds3d.fit.camera.ASSUMED_FOV_DEG).
-        people: "best", one person per image (PipelineResult.person_found says whether anybody
-        scored min_score), or "all", every person scoring at least min_score (none for an image
-        without people); people and min_score are for every image or one per image. Only the
-        people answered are lifted, so an image's answer is the same whichever other images,
-        asking whatever, share its call (up to the 3D stage's rounding, which depends on how
-        many people are lifted together). Raises InvalidImage, InvalidBox
-        (ds3d.boxes.checked_box), InvalidPose (bad intrinsics or focal_px) or ValueError (bad
-        people or min_score).
+        images: B arrays (H_i, W_i, 3) uint8 RGB (none: an empty result); bboxes: None or B
+        entries, each None or a person box (x0, y0, x1, y1) px: an image with a box is estimated
+        in it, one without is searched for people (ds3d.image2d.search); intrinsics: None (weak
+        perspective) or (B, 3, 3) / (3, 3) pinhole matrices; iterations: overrides
+        config.iterations; focal_px: without intrinsics, the focal length of the camera that
+        took the images, for every image or one per image, which places the people in its
+        coordinates (PipelineResult.root_position; None: an assumed one,
+        ds3d.fit.camera.ASSUMED_FOV_DEG). people: "best", one person per image
+        (PipelineResult.person_found says whether anybody scored min_score), or "all", every
+        person scoring at least min_score (none for an image without people); people and
+        min_score are for every image or one per image. Only the people answered are lifted, so
+        an image's answer is the same whichever other images, asking whatever, share its call
+        (up to the 3D stage's rounding, which depends on how many people are lifted together).
+        Raises InvalidImage, InvalidBox (ds3d.boxes.checked_box), InvalidPose (bad intrinsics or
+        focal_px) or ValueError (bad people or min_score).
         """
         images = list(images)
         focal = [
@@ -186,6 +186,8 @@ class Pipeline:
         ]
         people, min_score = _people_asked(people, min_score, len(images))
         boxes = _checked_boxes(images, bboxes)
+        if not images:
+            return PipelineResult.empty(iterations or self.config.iterations, {"total": 0.0})
         t_start = time.perf_counter()
         candidates = self.candidates(images, boxes, people)
         search_ms = 1000 * (time.perf_counter() - t_start)

@@ -64,12 +64,13 @@ class PipelineWorkers:
         n = len(images)
         if intrinsics is not None:
             intrinsics = np.asarray(intrinsics, np.float32)
-        parts = [rows for rows in np.array_split(np.arange(n), min(self.workers, n)) if len(rows)]
+        splits = np.array_split(np.arange(n), max(1, min(self.workers, n)))
+        parts = [rows for rows in splits if len(rows)]
         calls = []
         for rows in parts or [np.arange(0)]:
             options = {
                 "bboxes": _rows(bboxes, rows, n),
-                "intrinsics": intrinsics[rows] if _per_image(intrinsics, 3) else intrinsics,
+                "intrinsics": intrinsics[rows] if _per_camera(intrinsics) else intrinsics,
                 "iterations": iterations,
                 "people": _rows(people, rows, n),
                 "min_score": _rows(min_score, rows, n),
@@ -91,12 +92,14 @@ class PipelineWorkers:
         self.close()
 
 
-def _per_image(value, matrix_ndim: int | None = None) -> bool:
-    """Whether an option holds one value per image (a sequence, or an array of one more
-    dimension than a single value's `matrix_ndim`) rather than one for them all."""
-    if matrix_ndim is not None:
-        return isinstance(value, np.ndarray) and value.ndim == matrix_ndim
+def _per_image(value) -> bool:
+    """Whether an option holds one value per image (a sequence) rather than one for all."""
     return value is not None and not isinstance(value, str | int | float)
+
+
+def _per_camera(intrinsics: np.ndarray | None) -> bool:
+    """Whether intrinsics are one (3, 3) matrix per image, (B, 3, 3), rather than one for all."""
+    return intrinsics is not None and intrinsics.ndim == 3
 
 
 def _rows(value, rows: np.ndarray, n: int):

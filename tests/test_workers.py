@@ -59,3 +59,7 @@ def test_a_workers_error_reaches_the_caller(workers, images):
 def test_fewer_images_than_workers(workers, images):
     one = workers.estimate(images[:1])
     assert one.image_index.tolist() == [0]
+
+
+def test_no_images_no_people(workers, pipeline):
+    assert len(workers.estimate([]).image_index) == 0 == len(pipeline.estimate([]).image_index)
