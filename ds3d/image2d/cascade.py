@@ -279,22 +279,26 @@ def flip_columns(
     return out
 
 
-# Bytes of a traversal group's padded channel stack (pad_channels). Larger buffers are mmapped
-# afresh by malloc on every call and page-faulted in: several small groups beat one large one.
+# Bytes of a traversal group's padded channel stack (pad_channels). On the CPU, larger buffers are
+# mmapped afresh by malloc on every call and page-faulted in: several small groups beat one large
+# one. Off it, the allocator keeps its blocks, and each group is another round of kernel launches.
 GROUP_BYTES = 16 * 2**20
+DEVICE_GROUP_BYTES = 2**30
 
 
-def traversal_groups(sizes: list[tuple[int, int]], last_layer: Forest) -> list[list[int]]:
+def traversal_groups(
+    sizes: list[tuple[int, int]], last_layer: Forest, max_bytes: int = GROUP_BYTES
+) -> list[list[int]]:
     """Rows of a batch of images (h, w) in groups run through the cascade together: images of
     similar shape (sorted by aspect ratio, so little of a group is padding), each group's padded
-    stack of `last_layer`'s channels within GROUP_BYTES (at least one image per group)."""
+    stack of `last_layer`'s channels within max_bytes (at least one image per group)."""
     pad = 2 * last_layer.radius
     per_px = 4 * (last_layer.n_channels + 1)  # float32 bytes per padded pixel
     groups: list[list[int]] = []
     hmax = wmax = 0
     for i in sorted(range(len(sizes)), key=lambda i: (sizes[i][0] / sizes[i][1], i)):
         h, w = max(hmax, sizes[i][0]), max(wmax, sizes[i][1])
-        if groups and (len(groups[-1]) + 1) * per_px * (h + pad) * (w + pad) <= GROUP_BYTES:
+        if groups and (len(groups[-1]) + 1) * per_px * (h + pad) * (w + pad) <= max_bytes:
             groups[-1].append(i)
             hmax, wmax = h, w
         else:

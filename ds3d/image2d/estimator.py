@@ -34,6 +34,8 @@ import torch
 from ds3d.errors import DataFormatError
 from ds3d.image2d.buckets import bucket
 from ds3d.image2d.cascade import (
+    DEVICE_GROUP_BYTES,
+    GROUP_BYTES,
     forest_cells,
     group_channels,
     group_unaries,
@@ -298,6 +300,11 @@ class PoseEstimator2D:
         timings["psm"] += time.perf_counter() - t2
         return choice, base, logits
 
+    @property
+    def _group_bytes(self) -> int:
+        """The bytes of a traversal group on the estimator's device (cascade.traversal_groups)."""
+        return GROUP_BYTES if self.device.type == "cpu" else DEVICE_GROUP_BYTES
+
     def _upload(self, image: np.ndarray) -> torch.Tensor:
         """(H, W, 3) uint8 -> (1, H, W, 3) on the estimator's device."""
         return torch.from_numpy(image).to(self.device)[None]
@@ -335,7 +342,7 @@ class PoseEstimator2D:
         timings["features"] += time.perf_counter() - t0
         groups = [
             self._group_pose(resized, rows, layers, p, timings, final, logits)
-            for rows in traversal_groups(sizes, layers[-1])
+            for rows in traversal_groups(sizes, layers[-1], self._group_bytes)
         ]
         # Back to the batch's order, padded to one grid (log(LOG_EPS) outside each image).
         gh = max(g.unaries.shape[2] for _, g in groups)

@@ -26,6 +26,9 @@ import torch
 from torch import Tensor
 
 CHUNK_ELEMENTS = 1 << 20
+# Off the CPU there is no cache to stay in, and each chunk is another few kernel launches: far
+# larger chunks (256 MB of float32 buffer), so that a batch's maps go in a few calls.
+DEVICE_CHUNK_ELEMENTS = 1 << 26
 
 
 def _axis_kernel(size: int, mean: Tensor, var: Tensor) -> Tensor:
@@ -42,7 +45,7 @@ def max_convolve(
     mean: Tensor,
     var: Tensor,
     log_weight: Tensor,
-    chunk_elements: int = CHUNK_ELEMENTS,
+    chunk_elements: int | None = None,
 ) -> Tensor:
     """Message of a child score map to every parent cell, maximised over mixture components.
 
@@ -52,6 +55,8 @@ def max_convolve(
     log_weight: (N or 1, C) log mixture weights (-inf switches a component off).
     Returns (N, H, W) in the dtype of `scores`: M(x_j) as in the module docstring.
     A leading dimension 1 in the mixture means one mixture for all N maps.
+    chunk_elements: candidates per buffer (None: CHUNK_ELEMENTS on the CPU, DEVICE_CHUNK_ELEMENTS
+    elsewhere).
     """
     n, height, width = scores.shape
     n_comp = mean.shape[1]
@@ -62,6 +67,8 @@ def max_convolve(
             f" do not fit {n} score maps"
         )
     mean, var, log_weight = (t.to(scores.dtype) for t in (mean, var, log_weight))
+    if chunk_elements is None:
+        chunk_elements = CHUNK_ELEMENTS if scores.is_cpu else DEVICE_CHUNK_ELEMENTS
     per_map = height * width * max(height, width)  # candidates of one component in one pass
     comp_chunk = max(1, min(n_comp, chunk_elements // per_map))
     map_chunk = max(1, chunk_elements // (per_map * comp_chunk)) if comp_chunk == n_comp else 1

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from ds3d.errors import InvalidPose
-from ds3d.image2d.maxconv import CHUNK_ELEMENTS, best_child, max_convolve
+from ds3d.image2d.maxconv import best_child, max_convolve
 from ds3d.skeleton import LIMBS, NUM_JOINTS, PARENT
 
 NUM_LIMBS = len(LIMBS)
@@ -311,7 +311,7 @@ def infer(
     mixtures: PairwiseMixtures,
     stride: float | Tensor = 1.0,
     *,
-    chunk_elements: int = CHUNK_ELEMENTS,
+    chunk_elements: int | None = None,
 ) -> PsmResult:
     """MAP pose of the PSM (eqt:ps) by exact max-product over the tree, batched.
 
@@ -346,7 +346,7 @@ class RootScores:
         mixtures: PairwiseMixtures,
         stride: float | Tensor = 1.0,
         *,
-        chunk_elements: int = CHUNK_ELEMENTS,
+        chunk_elements: int | None = None,
     ):
         if unaries.ndim != 4 or unaries.shape[1] != NUM_JOINTS or unaries.numel() == 0:
             raise ValueError(f"unaries must be (B, {NUM_JOINTS}, H, W), got {tuple(unaries.shape)}")

@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from ds3d.errors import InvalidImage
-from ds3d.image2d import cascade
 from ds3d.image2d.estimator import PoseEstimator2D, nearest_scale
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.result import LOG_EPS
@@ -68,7 +67,7 @@ def test_grouping_of_a_batch_changes_no_result(small_model, monkeypatch):
     with intra_op_threads(1):
         # one image per group; groups of 2-3 (4-6 MB per padded image here); all in one
         for budget in (0, 10 * 2**20, 2**40):
-            monkeypatch.setattr(cascade, "GROUP_BYTES", budget)
+            monkeypatch.setattr(PoseEstimator2D, "_group_bytes", budget)
             results.append(est.estimate(images))
     for res in results[:2]:
         for name in ("joints_2d", "joint_scores", "unaries"):
