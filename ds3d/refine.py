@@ -161,7 +161,11 @@ def refine(
 
     # Whole images to parallel threads, each its own window.
     solved = sorted(
-        (one for part in map_on_threads(solve, split_rows(b)) for one in part),
+        (
+            one
+            for part in map_on_threads(solve, split_rows(b, estimate.unaries.device))
+            for one in part
+        ),
         key=lambda one: one[0],
     )
     found = torch.stack([c for _, c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]

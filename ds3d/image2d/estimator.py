@@ -159,7 +159,7 @@ class PoseEstimator2D:
         if views is not None:
             crops = [replace(c, views=v) for c, v in zip(crops, views, strict=True)]
         scales = list(scales) if scales is not None else self.scales()
-        parts = self._parts(len(crops))
+        parts = split_rows(len(crops), self.device)
         results = map_on_threads(
             lambda rows: self._estimate_crops([crops[i] for i in rows], scales), parts
         )
@@ -195,14 +195,11 @@ class PoseEstimator2D:
             extent, weight = p.canonical_extent, p.unary_weight
             return propose(jointnet, self.mixtures, part, extent, weight, search)
 
-        return [found for part in map_on_threads(run, self._parts(len(images))) for found in part]
-
-    def _parts(self, n: int) -> list[torch.Tensor]:
-        """Rows 0..n-1 split over CPU threads (ds3d.util.threads) on the CPU; on another device
-        one part, whose kernels the device runs in parallel itself."""
-        if self.device.type == "cpu":
-            return split_rows(n)
-        return [torch.arange(n)]
+        return [
+            found
+            for part in map_on_threads(run, split_rows(len(images), self.device))
+            for found in part
+        ]
 
     def _estimate_crops(self, crops: list[Crop], scales: list[float]) -> Estimate2D:
         """estimate() of crops on the calling thread, before the left/right decision; sets

@@ -30,9 +30,12 @@ def intra_op_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def split_rows(n: int) -> list[torch.Tensor]:
+def split_rows(n: int, device: torch.device | None = None) -> list[torch.Tensor]:
     """Rows 0..n-1 in at most torch.get_num_threads() contiguous, non-empty, ascending parts:
-    (n_i,) int64 tensors."""
+    (n_i,) int64 tensors. For work on a `device` other than the CPU, one part: the device runs
+    its kernels in parallel itself, and threads would only contend to launch them."""
+    if device is not None and device.type != "cpu":
+        return [torch.arange(n)]
     parts = np.array_split(np.arange(n), torch.get_num_threads())
     return [torch.from_numpy(rows) for rows in parts if len(rows)]
 
