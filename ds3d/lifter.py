@@ -73,6 +73,9 @@ class LifterConfig:
     # weighted this many of the K_w: their cost grows as the square of the neighbours
     selection_neighbours: int = 64
     index: IndexConfig = field(default_factory=IndexConfig)
+    # Off the CPU, search the indices' lists on the lifter's device (mocap.retrieval.DeviceLists:
+    # the same neighbours, no round trip); False: faiss on the CPU there too.
+    retrieval_on_device: bool = True
 
 
 # The paper's algorithm without ds3d's departures for speed, accuracy and proportions, the
@@ -172,13 +175,15 @@ class Lifter:
     ):
         self.device = torch.device(device)
         self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
-        # the candidates are gathered and rotated on the device; faiss searches on the CPU
+        # the candidates are gathered and rotated on the device, and searched there (place)
         self.database = dataclasses.replace(
             database,
             poses=database.poses.to(self.device),
             rotations=database.rotations.to(self.device),
         )
         self.configure(config)
+        if self.device.type != "cpu" and config.retrieval_on_device:
+            self.retriever.place(self.device)
         self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
 
     def configure(self, config: LifterConfig) -> None:
@@ -309,17 +314,19 @@ class Lifter:
     def retrieve(self, problems: Problems) -> torch.Tensor:
         """K neighbours of each problem from its set's index. Returns (P, K, 14, 3) mm,
         camera-oriented."""
-        set_index = problems.joint_set.cpu()
-        ids = torch.empty(len(set_index), self.config.neighbours, dtype=torch.long)
-        for s in set_index.unique().tolist():
-            take = (set_index == s).nonzero()[:, 0]
+        joints_2d = problems.own.joints_2d
+        shape = (len(joints_2d), self.config.neighbours)
+        ids = torch.empty(shape, dtype=torch.long, device=joints_2d.device)
+        for s in problems.joint_set.unique().tolist():
+            take = (problems.joint_set == s).nonzero()[:, 0].to(joints_2d.device)
             found = self.retriever.search(
-                problems.own.joints_2d[take.to(problems.own.joints_2d.device)],
+                joints_2d[take],
                 self.config.neighbours,
                 self.config.nprobe,
                 (self.config.joint_sets[s],),
+                self.config.retrieval_on_device,
             )
-            ids[take] = found[:, 0].cpu()
+            ids[take] = found[:, 0]
         return self.database.candidates(ids.to(self.device))
 
     def fit_projections(self, candidates, problems: Problems, start=None):

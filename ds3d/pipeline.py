@@ -136,9 +136,8 @@ class Pipeline:
     ) -> Pipeline:
         """The models of `model_dir` (default models/): the 2D stage in `image2d` (with its
         joint_calibration.json where it has one, ds3d.confidence), the pose database in
-        `database`; both stages on `device` (PoseEstimator2D.to; the 3D stage's retrieval
-        searches faiss on the CPU). Raises DataFormatError when either is missing or
-        malformed."""
+        `database`; both stages on `device` (PoseEstimator2D.to, Lifter). Raises DataFormatError
+        when either is missing or malformed."""
         directory = Path(model_dir) if model_dir is not None else MODELS_DIR
         estimator = PoseEstimator2D.load(directory / image2d, device)
         lifter_config = LifterConfig() if lifter_config is None else lifter_config

@@ -97,3 +97,26 @@ def test_candidates_are_database_poses_turned_by_their_view(walking):
     entry = 2 * 144 + 37
     expected = db.poses[2] @ db.rotations[37].T
     torch.testing.assert_close(db.candidates(torch.tensor([entry]))[0], expected)
+
+
+@pytest.mark.parametrize(
+    "config", [IndexConfig(kind="ivf", nlist=16, storage="sq8"), IndexConfig("flat", 1, "f32")]
+)
+def test_the_lists_searched_in_torch_give_faiss_neighbours(walking, config):
+    """PoseRetriever.place: the indices' lists searched in torch on a device (here the CPU, as
+    a GPU machine's lifter does on CUDA) find the neighbours faiss finds (up to ties)."""
+    db = PoseDatabase.from_world_poses(walking.numpy(), dedupe_mm=1.0)
+    retriever = PoseRetriever(db, config, cache=False)
+    entries = torch.arange(0, len(db.poses) * db.num_views, 331)[:24]
+    query = db.candidates(entries)[..., :2] * 0.3 + 250 + torch.randn(len(entries), 14, 2)
+    by_faiss = retriever.search(query, k=32, nprobe=4)
+    retriever.place("cpu")
+    in_torch = retriever.search(query, k=32, nprobe=4)
+    assert in_torch.shape == by_faiss.shape == (len(entries), 5, 32)
+    shared = [
+        len(set(a.tolist()) & set(b.tolist()))
+        for a, b in zip(in_torch.flatten(0, 1), by_faiss.flatten(0, 1), strict=True)
+    ]
+    assert np.mean(shared) / 32 > 0.99
+    # faiss on the CPU still, when asked
+    torch.testing.assert_close(retriever.search(query, 32, 4, on_device=False), by_faiss)
