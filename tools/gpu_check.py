@@ -16,7 +16,8 @@ OUT/gpu_check.json: per step its command, exit status, seconds and report (the J
 wrote), and the tail of its log (OUT/STEP.log). The steps:
   env           nvidia-smi, torch and its CUDA
   tests         the CUDA tests (pytest -k cuda; they skip without CUDA)
-  lift_cuda     ds3d bench lift on CUDA, batch 1, 64, 1,024 and 8,192
+  lift_cuda     ds3d bench lift on CUDA, batch 1, 64, 1,024 and 8,192; `_faiss`: retrieval by
+                faiss on the CPU rather than on the device (LifterConfig.retrieval_on_device)
   pipeline_cuda ds3d bench pipeline on CUDA, people searched, batch 1 and 64; `_boxes`: each
                 image's own box
   pipeline_cpu  the same on the CPU alone (CUDA_VISIBLE_DEVICES empty): 2 threads, all
@@ -164,6 +165,8 @@ def run(out: Path, data: Path | None, wheels: Path | None) -> dict:
     step("env", ["sh", "-c", f'nvidia-smi; {py} -c "{TORCH_INFO}"'], 30)
     step("tests", [py, "-m", "pytest", "-q", "-rs", "-k", "cuda", *tests], 150)
     step("lift_cuda", [*lift, "--device", "cuda", "--batch-sizes", "1,64,1024,8192"], 90)
+    faiss = ["--set", "retrieval_on_device=false", "--batch-sizes", "1,1024,8192"]
+    step("lift_cuda_faiss", [*lift, "--device", "cuda", *faiss], 90)
     step("pipeline_cuda", [*pipeline, "--device", "cuda", "--batch-sizes", "1,64"], 120)
     boxes = [*pipeline, "--device", "cuda", "--batch-sizes", "64", "--boxes"]
     step("pipeline_cuda_boxes", boxes, 60)
