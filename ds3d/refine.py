@@ -16,6 +16,7 @@ from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
 from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.skeleton import NUM_JOINTS
+from ds3d.util.groups import group_rows
 from ds3d.util.threads import map_on_threads, split_rows
 
 
@@ -131,15 +132,16 @@ def refine(
         """(image, cells (S, 14, 2), score (S,)) of the S problems of each image in rows: the
         images whose windows pad to one size bucket (ds3d.image2d.buckets) as one batch, the
         padding -inf, where no joint can go, so that each answers as its own window alone."""
-        groups: dict[tuple[int, int], list[int]] = {}
-        for i in rows.tolist():
-            height, width = windows[i][0].shape[-2:]
-            groups.setdefault((bucket(height), bucket(width)), []).append(i)
+        mine = rows.tolist()
+        sizes = (windows[i][0].shape[-2:] for i in mine)
         out = []
-        for (height, width), images in groups.items():
+        for (height, width), group in group_rows((bucket(h), bucket(w)) for h, w in sizes).items():
+            images = [mine[k] for k in group]
             stack = torch.stack([_pad(windows[i][0], height, width) for i in images])
             pooled, best = F.max_pool2d(stack, pool, ceil_mode=True, return_indices=True)
-            problems = torch.tensor([i * s + k for i in images for k in range(s)])
+            problems = torch.tensor(
+                [i * s + k for i in images for k in range(s)], device=stack.device
+            )
             binaries = (
                 mixtures.mean[problems],
                 mixtures.var[problems],

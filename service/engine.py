@@ -23,6 +23,7 @@ from ds3d.inputs import focal_length, intrinsics_batch, joints_2d_batch, visibil
 from ds3d.lifter import Lifter
 from ds3d.pipeline import MIN_SCORE, Pipeline
 from ds3d.result import Person
+from ds3d.util.groups import group_rows
 from ds3d.util.paths import MODELS_DIR
 from ds3d.workers import PipelineWorkers
 
@@ -87,17 +88,9 @@ def _numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def _groups(keys: Sequence[tuple[bool, ...]]) -> dict[tuple[bool, ...], list[int]]:
-    """Indices of the items grouped by which optional inputs they carry."""
-    groups: dict[tuple[bool, ...], list[int]] = {}
-    for i, key in enumerate(keys):
-        groups.setdefault(key, []).append(i)
-    return groups
-
-
 def _stacked_intrinsics(intrinsics: list[np.ndarray | None]) -> np.ndarray | None:
-    """The intrinsics of a group of items (_groups: all of them have one, or none), (B, 3, 3)
-    or None."""
+    """The intrinsics of a group of items that all carry one or none (group_rows), (B, 3, 3) or
+    None."""
     given = [k for k in intrinsics if k is not None]
     return np.stack(given) if given else None
 
@@ -173,7 +166,7 @@ class Engine:
     def lift_batch(self, items: Sequence[LiftInput]) -> list[LiftOutput]:
         """3D poses of B 2D poses; raises ds3d.errors.InvalidPose when the library refuses one."""
         out: list[LiftOutput | None] = [None] * len(items)
-        for idx in _groups([(it.intrinsics is not None,) for it in items]).values():
+        for idx in group_rows(it.intrinsics is not None for it in items).values():
             joints = np.stack([items[i].joints_2d for i in idx])
             visible = np.stack([items[i].visible for i in idx])
             intrinsics = _stacked_intrinsics([items[i].intrinsics for i in idx])
@@ -219,7 +212,7 @@ class Engine:
         if self.pipeline is None:
             raise RuntimeError(self.pose_unavailable)
         out: list[PoseOutput | None] = [None] * len(items)
-        for idx in _groups([(it.intrinsics is not None,) for it in items]).values():
+        for idx in group_rows(it.intrinsics is not None for it in items).values():
             boxes = [items[i].bbox for i in idx]
             res = self.pipeline.estimate(
                 [items[i].image for i in idx],

@@ -36,6 +36,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 from ds3d.image2d.buckets import bucket
 from ds3d.image2d.result import LOG_EPS
 from ds3d.skeleton import FLIP, NUM_JOINTS
+from ds3d.util.groups import group_rows
 
 M = TypeVar("M", bound=nn.Module)  # fold_batch_norms gives back the network it was given
 
@@ -178,11 +179,8 @@ def padded_logits_each(net: JointNet, labs: Sequence[Tensor]) -> list[Tensor]:
     96 x 64: 0.8 against 3.6 ms). An image's maps are those it gets alone,
     up to the float rounding of a larger batch: it sees its own zeros, not its neighbours'."""
     inputs = [_net_input(lab) for lab in labs]
-    by_shape: dict[tuple[int, int], list[int]] = {}
-    for i, x in enumerate(inputs):
-        by_shape.setdefault((x.shape[-2], x.shape[-1]), []).append(i)
     found: dict[int, Tensor] = {}
-    for (height, width), rows in by_shape.items():
+    for (height, width), rows in group_rows(x.shape[-2:] for x in inputs).items():
         per_call = max(1, NET_BATCH_PIXELS // (height * width))
         for start in range(0, len(rows), per_call):
             chunk = rows[start : start + per_call]
@@ -361,7 +359,7 @@ def jointnet_unaries(
     logits = [computed[i] if k is None else k for i, k in enumerate(known)]
     mirrored: list[Tensor | None] = [None] * len(labs)
     if flip_test:
-        mirrored = list(padded_logits_each(net, [lab.flip(-1) for lab in labs]))
+        mirrored = [*padded_logits_each(net, [lab.flip(-1) for lab in labs])]
     shape = (len(sizes), NUM_JOINTS, -(-h // stride), -(-w // stride))
     out = channels.new_full(shape, np.log(LOG_EPS))
     for i, (hi, wi) in enumerate(sizes):

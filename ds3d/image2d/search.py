@@ -36,6 +36,7 @@ from ds3d.image2d.jointnet import (
     padded_logits_each,
 )
 from ds3d.image2d.psm import PairwiseMixtures, RootScores
+from ds3d.util.groups import group_rows
 
 # The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
 # was trained with (ds3d.training.jointnet.ZOOM).
@@ -187,7 +188,7 @@ def propose(
         views[i].append(ScaledLogits(lg, (resized.shape[1] / width, resized.shape[0] / height)))
         poses[i].append(pose * np.array([width / resized.shape[1], height / resized.shape[0]]))
         scores[i].append(score)
-    return [_suppressed(*found, params) for found in zip(poses, scores, views, strict=True)]
+    return [_suppressed(*image, params) for image in zip(poses, scores, views, strict=True)]
 
 
 def _level_people(
@@ -196,14 +197,11 @@ def _level_people(
     """The people of each level: unaries (1, 14, h_i, w_i) the PSM's, stride px of the level per
     cell -> per level, poses (K, 14, 2) px of the level and root scores (K,), the best local
     maxima of the root scores (local_peaks). The levels of one grid shape share one PSM."""
-    by_shape: dict[tuple[int, ...], list[int]] = {}
-    for i, u in enumerate(unaries):
-        by_shape.setdefault(tuple(u.shape), []).append(i)
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for rows in by_shape.values():
+    for rows in group_rows(u.shape for u in unaries).values():
         upward = RootScores(torch.cat([unaries[i] for i in rows]), mixtures, stride=float(stride))
-        radius, count = params.peak_radius, params.peaks_per_level
-        peaks = [local_peaks(root, radius, count) for root in upward.root]
+        radius, most = params.peak_radius, params.peaks_per_level
+        peaks = [local_peaks(root, radius, most) for root in upward.root]
         # The levels' peaks padded to one count with each level's first, then cut back.
         count = max(len(p) for p in peaks)
         padded = torch.stack([torch.cat([p, _first(p).expand(count - len(p), 2)]) for p in peaks])
