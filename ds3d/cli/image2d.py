@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from ds3d.cli.parser import DEFAULT_IMAGE2D, add_set_option, field_overrides, write_report
-from ds3d.data.lsp import load_lsp
+from ds3d.data.lsp import load_lsp, load_lspet
 from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_setup
@@ -52,6 +52,12 @@ def register(commands, evals, benches) -> None:
         default=TrainConfig.n_val,
         help="last LSP train images held out for validation",
     )
+    p.add_argument(
+        "--lspet-val",
+        type=int,
+        default=TrainConfig.lspet_val,
+        help="last LSPet images held out for validation (a second set, of other looks)",
+    )
     p.add_argument("--small", action="store_true", help="tiny model in under a minute (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
@@ -83,9 +89,10 @@ def register(commands, evals, benches) -> None:
     e.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
     e.add_argument(
         "--split",
-        choices=("test", "train"),
+        choices=("test", "train", "lspet"),
         default="test",
-        help="train: for tuning on the images a model holds out (see --start)",
+        help="train: for tuning on the images a model holds out (see --start); lspet: LSPet, "
+        "whose last images a model trained with --lspet-val holds out",
     )
     e.add_argument("--start", type=int, default=0, help="skip the split's first n images")
     e.add_argument("--limit", type=int, default=None, help="first N images only (after --start)")
@@ -111,7 +118,9 @@ def load_estimator(args) -> PoseEstimator2D:
 def cmd_train(args) -> int:
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    cfg = TrainConfig(seed=args.seed, n_val=args.n_val, **(SMALL if args.small else {}))
+    cfg = TrainConfig(
+        seed=args.seed, n_val=args.n_val, lspet_val=args.lspet_val, **(SMALL if args.small else {})
+    )
     if args.no_jointnet:
         cfg = replace(cfg, jointnet_epochs=0)
     overrides = field_overrides(EstimatorParams, args.set)
@@ -160,12 +169,14 @@ def cmd_eval_lsp(args) -> int:
         raise SystemExit("--write-manifest records LSP test results of the model as saved")
     torch.set_num_threads(args.threads)
     est = load_estimator(args)
-    ann = load_lsp(split=args.split)
+    ann = load_lspet() if args.split == "lspet" else load_lsp(split=args.split)
     end = len(ann) if args.limit is None else min(args.start + args.limit, len(ann))
     ann = ann.subset(range(args.start, end))
-    first = 1 if args.split == "train" else 1001
+    first = 1001 if args.split == "test" else 1
+    digits = 5 if args.split == "lspet" else 4
+    name = "LSPet" if args.split == "lspet" else f"LSP {args.split}"
     result = {
-        "dataset": f"LSP {args.split} im{first + args.start:04d}-im{first + end - 1:04d}",
+        "dataset": f"{name} im{first + args.start:0{digits}d}-im{first + end - 1:0{digits}d}",
         "model": project_relative(args.model),
         "overrides": args.set,
     }

@@ -1,5 +1,7 @@
 """LSP's 2D protocol: PCK@0.2 (torso = mean of the two shoulder-hip diagonals) per joint and
-mean, and mean pixel error, over all 14 joints of every image (occluded joints included), for
+mean, and mean pixel error, over all 14 joints of every image (occluded joints included; on
+LSPet, which places only the joints it sees, over those, in the images where a diagonal's two
+ends are placed, the torso then the mean of such diagonals), for
 the 2D stage (evaluate_2d) and for the 3D stage's 2D refinement and its ablation, the paper's
 fig:query (evaluate_refinement); and how often the answered joints are right at each confidence
 (joint_outcomes, for ds3d.confidence).
@@ -34,15 +36,18 @@ REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
 }
 
 
-def pck_report(pred: torch.Tensor, gt: torch.Tensor, per_joint: bool = False) -> dict:
-    """pred, gt: (N, 14, 2) px -> PCK@0.2 (and per joint) and the mean pixel error."""
-    joint_pck = pck(pred, gt)
+def pck_report(
+    pred: torch.Tensor, gt: torch.Tensor, located: torch.Tensor, per_joint: bool = False
+) -> dict:
+    """pred, gt: (N, 14, 2) px, located: (N, 14) bool, the joints placed and scored, each image
+    with a torso diagonal placed -> PCK@0.2 (and per joint) and the mean pixel error."""
+    joint_pck = pck(pred, gt, located, reference=torso_diameter(gt, located))
     report: dict[str, float | dict[str, float]] = {"pck@0.2": round(float(joint_pck.mean()), 4)}
     if per_joint:
         report["pck@0.2_per_joint"] = {
             n: round(float(v), 4) for n, v in zip(JOINT_NAMES, joint_pck, strict=True)
         }
-    report["mean_pixel_error"] = round(float(pixel_error(pred, gt).mean()), 2)
+    report["mean_pixel_error"] = round(float(pixel_error(pred, gt, located).mean()), 2)
     return report
 
 
@@ -69,11 +74,26 @@ def evaluate_2d(est: PoseEstimator2D, ann: PoseAnnotations, batch: int = 16) -> 
             argmax.append(argmax_joints(res).cpu())
             bar.update(len(images))
     seconds = time.perf_counter() - t0
-    gt = torch.from_numpy(ann.joints)
-    out: dict[str, float | dict] = {"n_images": len(ann), "seconds": round(seconds, 1)}
+    scored = with_torso(ann)
+    out: dict[str, float | dict] = {"n_images": int(scored.sum()), "seconds": round(seconds, 1)}
+    if not scored.all():
+        out["n_images_without_torso"] = int((~scored).sum())
     for name, pred in (("psm", torch.cat(preds)), ("unary_argmax", torch.cat(argmax))):
-        out[name] = pck_report(pred, gt, per_joint=True)
+        out[name] = scored_report(pred, ann, per_joint=True)
     return out
+
+
+def with_torso(ann: PoseAnnotations) -> torch.Tensor:
+    """(N,) bool: the images where both ends of a torso diagonal are placed (PCK's reference)."""
+    return torso_diameter(ann.joints, ann.located).isfinite()
+
+
+def scored_report(pred: torch.Tensor, ann: PoseAnnotations, per_joint: bool = False) -> dict:
+    """pck_report of pred (N, 14, 2) px on the images of ann with_torso, over their placed
+    joints."""
+    scored = with_torso(ann)
+    gt, located = torch.from_numpy(ann.joints)[scored], torch.from_numpy(ann.located)[scored]
+    return pck_report(pred[scored], gt, located, per_joint)
 
 
 def variant_configs(name: str, overrides: dict) -> tuple[PipelineConfig, LifterConfig]:
@@ -128,11 +148,10 @@ def evaluate_refinement(
                     )
                 seconds[name] += time.perf_counter() - t0
             bar.update(len(images))
-    gt = torch.from_numpy(ann.joints)
     return {
         "variants": {n: describe_variant(*variant_configs(n, overrides)) for n in names},
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
-        "results": {k: pck_report(torch.cat(v), gt) for k, v in preds.items()},
+        "results": {k: scored_report(torch.cat(v).cpu(), ann) for k, v in preds.items()},
     }
 
 

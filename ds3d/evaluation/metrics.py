@@ -46,21 +46,36 @@ def pa_mpjpe(pred, gt) -> torch.Tensor:
     return mpjpe(align(pred, gt, scale=True), gt)
 
 
-def torso_diameter(gt) -> torch.Tensor:
+def torso_diameter(gt, placed=None) -> torch.Tensor:
     """LSP's PCK reference: the distance between opposite shoulder and hip, (N,) px. gt:
-    (N, 14, 2). The mean of the two diagonals, which is defined when the torso is foreshortened."""
+    (N, 14, 2). The mean of the two diagonals, which is defined when the torso is foreshortened;
+    placed: None, or (N, 14) bool, the joints annotated: the mean of the diagonals whose ends
+    both are (NaN where neither's are)."""
     gt = _t(gt)
-    one = (gt[:, R_SHOULDER] - gt[:, L_HIP]).norm(dim=-1)
-    other = (gt[:, L_SHOULDER] - gt[:, R_HIP]).norm(dim=-1)
-    return (one + other) / 2
+    diagonals = torch.stack(
+        [
+            (gt[:, R_SHOULDER] - gt[:, L_HIP]).norm(dim=-1),
+            (gt[:, L_SHOULDER] - gt[:, R_HIP]).norm(dim=-1),
+        ],
+        -1,
+    )
+    if placed is None:
+        return diagonals.mean(-1)
+    placed = _t(placed).bool()
+    whole = torch.stack(
+        [placed[:, R_SHOULDER] & placed[:, L_HIP], placed[:, L_SHOULDER] & placed[:, R_HIP]], -1
+    )
+    return (diagonals * whole).sum(-1) / whole.sum(-1)
 
 
-def pck(pred, gt, visible=None, threshold: float = 0.2) -> torch.Tensor:
-    """Per-joint PCK: the fraction of visible joints within threshold * torso diameter.
-    pred, gt: (N, 14, 2) px; visible: (N, 14) bool or None. Returns (14,) in [0, 1]."""
+def pck(pred, gt, visible=None, threshold: float = 0.2, reference=None) -> torch.Tensor:
+    """Per-joint PCK: the fraction of visible joints within threshold * the reference length.
+    pred, gt: (N, 14, 2) px; visible: (N, 14) bool or None; reference: (N,) px, by default
+    torso_diameter(gt). Returns (14,) in [0, 1]."""
     pred, gt = _t(pred), _t(gt)
     mask = torch.ones(gt.shape[:2], dtype=torch.bool) if visible is None else _t(visible).bool()
-    correct = (pred - gt).norm(dim=-1) <= threshold * torso_diameter(gt)[:, None]
+    length = torso_diameter(gt) if reference is None else _t(reference)
+    correct = (pred - gt).norm(dim=-1) <= threshold * length[:, None]
     return (correct & mask).sum(0).double() / mask.sum(0).clamp_min(1)
 
 

@@ -14,6 +14,7 @@ class TrainConfig:
 
     seed: int = 0
     n_val: int = 300  # last LSP train images held out for validation
+    lspet_val: int = 0  # last LSPet images held out: a second validation set, of other looks
     max_images: int | None = None  # cap on training images (small mode)
     trees: tuple[int, ...] = (16, 16)  # trees per cascade layer
     images_per_tree: int = 4000  # of the ~5,350 in a layer's share (fewer score worse)
@@ -27,6 +28,8 @@ class TrainConfig:
     jointnet_lr: float = 3e-3  # its peak learning rate (one cycle)
     jointnet_widths: tuple[int, int, int] = JointNetShape.widths  # its JointNetShape
     jointnet_blocks: tuple[int, int, int] = JointNetShape.blocks
+    # its views degraded (ds3d.training.jointnet.degrade): cut, occluded, blurred, grey
+    jointnet_degraded: bool = False
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20

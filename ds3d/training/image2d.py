@@ -106,9 +106,12 @@ def train(
     timings["total"] = time.perf_counter() - t0
     provenance = {
         "data": {
-            "train": f"LSP train im0001-im{1000 - cfg.n_val:04d} + LSPet im00001-im10000"
+            "train": f"LSP train im0001-im{1000 - cfg.n_val:04d}"
+            + f" + LSPet im00001-im{10000 - cfg.lspet_val:05d}"
             + (f", {cfg.max_images} of them drawn with the seed" if cfg.max_images else ""),
-            "validation": f"LSP train im{1001 - cfg.n_val:04d}-im1000 (not trained on)",
+            "validation": f"LSP train im{1001 - cfg.n_val:04d}-im1000"
+            + (f" and LSPet im{10001 - cfg.lspet_val:05d}-im10000" if cfg.lspet_val else "")
+            + " (not trained on)",
             "n_train_images": len(train_ann),
             "terms": "LSP/LSPet: research use only (Johnson & Everingham, BMVC 2010, CVPR 2011)",
         },

@@ -1,7 +1,7 @@
 """The 2D stage's training images: LSP train (im0001-im1000, minus the last `n_val` images, held
-out for validation) and LSPet (10,000), each rescaled so that its person spans
-`canonical_extent` px (ModelParams), optionally mirrored; and the relabellings of their joints
-(observer-centric labels, whether the person faces the camera)."""
+out for validation) and LSPet (10,000, minus the last `lspet_val`, held out likewise), each
+rescaled so that its person spans `canonical_extent` px (ModelParams), optionally mirrored; and
+the relabellings of their joints (observer-centric labels, whether the person faces the camera)."""
 
 from __future__ import annotations
 
@@ -71,12 +71,20 @@ def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarra
 
 
 def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotations]:
-    """(train, val): LSP train minus its last n_val images + LSPet; val = those n_val images."""
+    """(train, val): LSP train minus its last n_val images + LSPet minus its last lspet_val;
+    val = those n_val LSP images (lspet_validation: the LSPet ones)."""
     lsp = load_lsp(split="train")
     n_fit = len(lsp) - cfg.n_val
-    train = lsp.subset(range(n_fit)).concat(load_lspet())
+    lspet = load_lspet()
+    train = lsp.subset(range(n_fit)).concat(lspet.subset(range(len(lspet) - cfg.lspet_val)))
     val = lsp.subset(range(n_fit, len(lsp)))
     if cfg.max_images is not None:
         keep = np.random.default_rng(cfg.seed).choice(len(train), cfg.max_images, replace=False)
         train = train.subset(np.sort(keep))
     return train, val
+
+
+def lspet_validation(cfg: TrainConfig) -> PoseAnnotations:
+    """The last cfg.lspet_val LSPet images, which the training of cfg holds out."""
+    lspet = load_lspet()
+    return lspet.subset(range(len(lspet) - cfg.lspet_val, len(lspet)))

@@ -1,13 +1,15 @@
 """Training of the joint network (ds3d.image2d.jointnet) on the 2D stage's training images.
 
 The data is one WINDOW x WINDOW window of Lab channels per image at the working scale, around
-the person (jointnet_windows). Every draw cuts a CROP x CROP view from it, rotated
+the person (jointnet_windows). Every draw cuts a CROP x CROP view from it (view_windows), rotated
 (+-ROTATION degrees), zoomed (x ZOOM[0]-ZOOM[1]: the pyramid's residual scale error and more),
 shifted, mirrored at random (left and right labels swapped with it) and jittered in lightness
-and colour. The target of a
-joint is a Gaussian of SIGMA output cells around it, normalised over the cells; the loss is the
-cross-entropy between it and the log-softmax of the joint's map, over the joints whose position
-is annotated (PoseAnnotations.located) and that lie in the view.
+and colour; then, where TrainConfig.jointnet_degraded says so, made to look less like an LSP
+crop (degrade): cut by an image edge, occluded by a patch of another view, blurred as a small
+person scaled up is. The target of a joint is a Gaussian of SIGMA output cells around it,
+normalised over the cells; the loss is the cross-entropy between it and the log-softmax of the
+joint's map, over the joints whose position is annotated (PoseAnnotations.located) and that lie
+in the view.
 
 bfloat16 autocast on a CPU that computes it (jointnet.CPU_BFLOAT16): twice the speed of float32
 on this machine's cores (docs/tuning.md). Seeded by seed * 1000 + 11 (torch's generator).
@@ -45,12 +47,29 @@ ZOOM = (1 / 1.3, 1 / 0.7)  # window px per input px: the person at 0.7-1.3 times
 SHIFT = 12.0  # px
 SIGMA = 1.0  # output cells
 BATCH = 64
+# degrade: how often each happens to a view, and how much
+EDGE_CUT = 0.25  # a view cut by an image edge: what lies beyond is zeros, as beyond a photo
+EDGE_SIDES = (0.2, 0.2, 0.1, 0.5)  # the edge at the left, right, top, bottom (legs cut most)
+EDGE_SHARE = (0.1, 0.4)  # of the person's extent beyond the edge
+OCCLUSION = 0.3  # a view with a rectangle of another view pasted over it
+OCCLUDER = (0.15, 0.4)  # its sides, of the view's
+LOW_RESOLUTION = 0.3  # a view shrunk by a factor of 1.5-3 and scaled back up
+GREY = 0.1  # a view without colour
 
 
-def augment(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Random views of a batch: windows (b, 3, WINDOW, WINDOW), joints (b, 14, 2) window px,
-    located (b, 14) -> (b, 3, CROP, CROP) float32, joints (b, 14, 2) in view px, (b, 14) bool
-    of the located joints that lie in the view."""
+def augment(
+    windows: Tensor, joints: Tensor, located: Tensor, degraded: bool = True
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Random views of a batch (view_windows, then degrade where `degraded`): windows (b, 3,
+    WINDOW, WINDOW), joints (b, 14, 2) window px, located (b, 14) -> (b, 3, CROP, CROP) float32,
+    joints (b, 14, 2) in view px, (b, 14) bool of the located joints that lie in the view."""
+    views = view_windows(windows, joints, located)
+    return degrade(*views) if degraded else views
+
+
+def view_windows(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The geometric and colour part of augment: rotated, zoomed, shifted, mirrored views, with
+    augment's arguments and results."""
     b = len(windows)
     angle = torch.empty(b).uniform_(-ROTATION, ROTATION) * (math.pi / 180)
     zoom = torch.empty(b).uniform_(*ZOOM)
@@ -76,6 +95,73 @@ def augment(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tensor, T
     known = torch.where(flip[:, None], located[:, order], located)
     inside = ((out >= 0) & (out <= CROP - 1)).all(-1)
     return views, out, known & inside
+
+
+def degrade(views: Tensor, joints: Tensor, known: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Views (b, 3, CROP, CROP) with their joints (b, 14, 2) view px and known (b, 14) bool made
+    to look like people in other photos than LSP's tight, sharp crops (the rates above): cut by
+    an image edge (edge_cut: the joints beyond it no longer known), a patch of another view of
+    the batch over them (occlude; the joints under it stay known: the network learns to place
+    hidden joints from the rest of the person), shrunk and scaled back up (low_resolution),
+    without colour. Returns the same three, views changed in place."""
+    b = len(views)
+    views, known = edge_cut(views, joints, known, torch.rand(b) < EDGE_CUT)
+    views = occlude(views, torch.rand(b) < OCCLUSION)
+    views = low_resolution(views, torch.rand(b) < LOW_RESOLUTION)
+    views[:, 1:] *= (torch.rand(b) >= GREY)[:, None, None, None]
+    return views, joints, known
+
+
+def edge_cut(views: Tensor, joints: Tensor, known: Tensor, chosen: Tensor) -> tuple[Tensor, Tensor]:
+    """The chosen views (chosen: (b,) bool) cut by an image edge (EDGE_SIDES) that leaves a drawn
+    share (EDGE_SHARE) of their known joints' extent beyond it: those pixels zeros (what the
+    network sees beyond a photo's border), those joints unknown. Returns views, known."""
+    b = len(views)
+    side = torch.multinomial(torch.tensor(EDGE_SIDES), b, replacement=True)  # (b,)
+    share = torch.empty(b).uniform_(*EDGE_SHARE)
+    axis = (side >= 2).long()  # 0: x (left, right edges), 1: y (top, bottom)
+    far = side % 2 == 1  # the right or bottom edge: what lies beyond is the high coordinates
+    coord = joints.gather(2, axis[:, None, None].expand(-1, joints.shape[1], 1))[..., 0]
+    low = torch.where(known, coord, math.inf).amin(1)
+    high = torch.where(known, coord, -math.inf).amax(1)
+    cut = torch.where(far, high - share * (high - low), low + share * (high - low))
+    chosen = chosen & known.any(1)
+    beyond_joint = torch.where(far[:, None], coord > cut[:, None], coord < cut[:, None])
+    known = known & ~(chosen[:, None] & beyond_joint)
+    px = torch.arange(views.shape[-1], dtype=torch.float32)
+    pos = torch.where(axis[:, None, None] == 0, px[None, None, :], px[None, :, None])  # (b,H,W)
+    cut_px = cut[:, None, None]
+    beyond = torch.where(far[:, None, None], pos > cut_px, pos < cut_px) & chosen[:, None, None]
+    views.masked_fill_(beyond[:, None], 0.0)
+    return views, known
+
+
+def occlude(views: Tensor, chosen: Tensor) -> Tensor:
+    """The chosen views (chosen: (b,) bool) with a rectangle (sides OCCLUDER of the view's) taken
+    from another view of the batch at the same place."""
+    b, _, h, w = views.shape
+    size = torch.empty(b, 2).uniform_(*OCCLUDER) * torch.tensor([w, h])
+    corner = torch.rand(b, 2) * (torch.tensor([w, h]) - size)
+    ys, xs = torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32)
+    in_x = (xs >= corner[:, :1]) & (xs < corner[:, :1] + size[:, :1])  # (b, W)
+    in_y = (ys >= corner[:, 1:]) & (ys < corner[:, 1:] + size[:, 1:])  # (b, H)
+    inside = in_y[:, :, None] & in_x[:, None, :] & chosen[:, None, None]
+    others = views[torch.randperm(b)]
+    return torch.where(inside[:, None], others, views)
+
+
+def low_resolution(views: Tensor, chosen: Tensor) -> Tensor:
+    """The chosen views (chosen: (b,) bool) shrunk by one drawn factor of 1.5-3 (area averaging)
+    and scaled back up (bilinear): the look of a small person that the pyramid scales up."""
+    rows = torch.nonzero(chosen).view(-1)
+    if len(rows) == 0:
+        return views
+    size = views.shape[-2:]
+    factor = float(torch.empty(()).uniform_(1.5, 3.0))
+    small = [round(n / factor) for n in size]
+    shrunk = F.interpolate(views[rows], size=small, mode="area")
+    views[rows] = F.interpolate(shrunk, size=size, mode="bilinear", align_corners=False)
+    return views
 
 
 def soft_targets(joints: Tensor, size: int) -> Tensor:
@@ -107,10 +193,11 @@ def train_jointnet(
     seed: int,
     shape: JointNetShape = JointNetShape(),
     checkpoint: Path | None = None,
+    degraded: bool = False,
 ) -> tuple[JointNet, float]:
     """JointNet of `shape` trained on jointnet_windows: AdamW, a one-cycle learning rate peaking
-    at lr, `epochs` epochs of batches of BATCH random views (augment). Returns the network and
-    the seconds its epochs took (over every run of a resumed training).
+    at lr, `epochs` epochs of batches of BATCH random views (augment, `degraded` or not). Returns
+    the network and the seconds its epochs took (over every run of a resumed training).
 
     checkpoint: where the state after every epoch is written (network, optimiser, schedule,
     random state); a run that finds one there, of the same training, resumes after its epoch and
@@ -123,6 +210,7 @@ def train_jointnet(
     steps = epochs * -(-len(windows) // BATCH)
     schedule = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps)
     run = {"epochs": epochs, "lr": lr, "seed": seed, "shape": asdict(shape), "n": len(windows)}
+    run |= {"degraded": degraded}
     first, seconds = 0, 0.0
     if checkpoint is not None and checkpoint.is_file():
         first, seconds = _resume(checkpoint, run, net, opt, schedule)
@@ -132,7 +220,7 @@ def train_jointnet(
         t0 = time.perf_counter()
         total = 0.0
         for rows in torch.randperm(len(windows)).split(BATCH):
-            views, pts, mask = augment(windows[rows], joints[rows], located[rows])
+            views, pts, mask = augment(windows[rows], joints[rows], located[rows], degraded)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=CPU_BFLOAT16):
                 logits = net(views.contiguous(memory_format=torch.channels_last))
             loss = jointnet_loss(logits, pts, mask)
@@ -212,7 +300,13 @@ def fit_jointnet(
     windows = jointnet_windows(ann, params)
     windows_seconds = time.perf_counter() - t0
     net, seconds = train_jointnet(
-        *windows, cfg.jointnet_epochs, cfg.jointnet_lr, cfg.seed, cfg.jointnet_shape(), checkpoint
+        *windows,
+        cfg.jointnet_epochs,
+        cfg.jointnet_lr,
+        cfg.seed,
+        cfg.jointnet_shape(),
+        checkpoint,
+        cfg.jointnet_degraded,
     )
     state = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
     return state, windows_seconds + seconds

@@ -51,6 +51,19 @@ def test_eval_lsp_on_held_out_train_images_with_an_override(small_model, tmp_pat
         EstimatorParams().with_inference(stride=4)
 
 
+@pytest.mark.usefixtures("data_dir")
+def test_eval_lsp_on_lspet_scores_the_placed_joints_of_images_with_a_torso(small_model, tmp_path):
+    out = tmp_path / "lspet.json"
+    argv = ["lsp", "--model", str(small_model), "--split", "lspet", "--start", "9000"]
+    assert cli(["eval", *argv, "--limit", "12", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["dataset"] == "LSPet im09001-im09012"
+    # LSPet leaves unplaced the joints it does not see, torso joints too: of these 12 images,
+    # 10 have both ends of a torso diagonal placed (ds3d.evaluation.lsp.with_torso).
+    assert report["n_images"] == 10 and report["n_images_without_torso"] == 2
+    assert 0 <= report["psm"]["pck@0.2"] <= 1
+
+
 def test_set_takes_a_tuple_as_comma_separated_values():
     overrides = ["jointnet_widths=32,64,96", "jointnet_blocks=1,1,2"]
     assert field_overrides(TrainConfig, overrides) == {

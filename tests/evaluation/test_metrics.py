@@ -1,7 +1,7 @@
 import numpy as np
 import torch
 
-from ds3d.evaluation.metrics import align, mpjpe, pa_mpjpe, pck, rigid_error
+from ds3d.evaluation.metrics import align, mpjpe, pa_mpjpe, pck, rigid_error, torso_diameter
 from ds3d.fit.camera import rotation_matrix
 
 
@@ -45,3 +45,21 @@ def test_pck_counts_joints_within_a_fifth_of_the_torso():
     per_joint = pck(pred, gt)
     assert per_joint[0] == 1 and per_joint[1] == 0
     assert pck(pred, gt, visible=torch.tensor([[True] + [False] * 13]))[1] == 0
+
+
+def test_the_torso_of_a_partly_annotated_person_is_its_placed_diagonals():
+    """LSPet places only the joints it sees: a diagonal with an unplaced end (junk coordinates)
+    leaves the torso to the other one; with neither, the torso is undefined."""
+    gt = torch.zeros(3, 14, 2, dtype=torch.float64)
+    gt[:, 8], gt[:, 3] = torch.tensor([0.0, 0.0]), torch.tensor([0.0, 100.0])  # R sh., L hip
+    gt[:, 9], gt[:, 2] = torch.tensor([30.0, 0.0]), torch.tensor([30.0, 60.0])  # L sh., R hip
+    placed = torch.ones(3, 14, dtype=torch.bool)
+    placed[1, 2] = False  # the other diagonal's hip unplaced
+    placed[2, [2, 8]] = False  # neither diagonal whole
+    diameter = torso_diameter(gt, placed)
+    np.testing.assert_allclose(diameter[:2], [(100 + 60) / 2, 100.0])
+    assert diameter[2].isnan() and torso_diameter(gt)[2].isfinite()
+    pred = gt.clone()
+    pred[:, 0, 0] += 60  # 60 px off: within 0.2 x 400 px, not within 0.2 x 100 px
+    per_joint = pck(pred, gt, reference=torch.tensor([400.0, 100.0, 100.0]))
+    assert per_joint[0] == 1 / 3  # within 0.2 x 400 only

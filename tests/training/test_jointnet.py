@@ -10,19 +10,29 @@ import torch
 from ds3d.image2d.jointnet import JointNet, JointNetShape
 from ds3d.skeleton import FLIP, NUM_JOINTS
 from ds3d.training import jointnet as jointnet_training
-from ds3d.training.jointnet import WINDOW, augment, jointnet_loss, soft_targets
+from ds3d.training.jointnet import (
+    CROP,
+    WINDOW,
+    augment,
+    edge_cut,
+    jointnet_loss,
+    low_resolution,
+    occlude,
+    soft_targets,
+    view_windows,
+)
 
 
 def test_views_carry_their_joints_with_them():
-    """A bright dot planted at joint 0 of a window lands where augment puts the joint, with the
-    joint relabelled by FLIP in mirrored views."""
+    """A bright dot planted at joint 0 of a window lands where view_windows puts the joint, with
+    the joint relabelled by FLIP in mirrored views."""
     torch.manual_seed(0)
     b = 32
     windows = torch.zeros(b, 3, WINDOW, WINDOW, dtype=torch.float16)
     joints = torch.full((b, NUM_JOINTS, 2), (WINDOW - 1) / 2)
     joints[:, 0] = torch.tensor([70.0, 100.0])
     windows[:, 0, 99:102, 69:72] = 1.0  # around (x, y) = (70, 100)
-    views, pts, known = augment(windows, joints, torch.ones(b, NUM_JOINTS, dtype=torch.bool))
+    views, pts, known = view_windows(windows, joints, torch.ones(b, NUM_JOINTS, dtype=torch.bool))
     mirrored = 0
     for k in range(b):
         # where the dot went: the centroid of the lightness above the view's background
@@ -36,6 +46,81 @@ def test_views_carry_their_joints_with_them():
         assert math.dist(pts[k, label].tolist(), (x, y)) < 1, (k, pts[k, label], (x, y))
         mirrored += label != 0
     assert 0 < mirrored < b
+
+
+def test_an_edge_cut_blanks_and_forgets_what_lies_beyond_it():
+    """Every chosen view loses the pixels and the joints beyond one edge, 10-40 % of its joints'
+    extent along that axis; the others keep both."""
+    torch.manual_seed(3)
+    b = 64
+    views = torch.rand(b, 3, CROP, CROP) + 0.5  # no zeros of its own
+    joints = torch.rand(b, NUM_JOINTS, 2) * 80 + 20
+    known = torch.ones(b, NUM_JOINTS, dtype=torch.bool)
+    chosen = torch.arange(b) % 2 == 0
+    cut, still = edge_cut(views.clone(), joints, known, chosen)
+    blank = (cut == 0).all(1)  # (b, H, W)
+    assert not blank[~chosen].any() and (still[~chosen]).all()
+    for k in torch.nonzero(chosen).view(-1).tolist():
+        rows, cols = blank[k].all(1), blank[k].all(0)  # whole rows (top / bottom) or columns
+        axis = 1 if rows.any() else 0
+        lines = rows if axis else cols
+        assert lines.any() and blank[k].sum() == lines.sum() * CROP  # one band, nothing else
+        coord = joints[k, :, axis]
+        lost = ~still[k]
+        extent = float(coord.max() - coord.min())
+        beyond_share = float((coord[lost].max() - coord[lost].min()) if lost.sum() > 1 else 0)
+        assert lost.any() and beyond_share <= 0.4 * extent + 1e-4
+        edge = torch.nonzero(lines).view(-1)
+        first_blank_is_border = int(edge.min()) == 0
+        # the lost joints lie on the blank side, the kept ones on the other
+        inner = float(edge.max() + 1) if first_blank_is_border else float(edge.min())
+        if first_blank_is_border:
+            assert (coord[lost] < inner).all() and (coord[~lost] >= inner - 1).all()
+        else:
+            assert (coord[lost] > inner - 1).all() and (coord[~lost] <= inner).all()
+
+
+def test_an_occluder_is_one_rectangle_of_another_view():
+    torch.manual_seed(4)
+    b = 16
+    views = torch.arange(b, dtype=torch.float32)[:, None, None, None].expand(b, 3, CROP, CROP)
+    chosen = torch.arange(b) < 8
+    out = occlude(views.clone(), chosen)
+    for k in range(b):
+        changed = (out[k] != views[k]).any(0)
+        if not chosen[k]:
+            assert not changed.any()
+            continue
+        ys, xs = torch.nonzero(changed, as_tuple=True)
+        if len(ys) == 0:  # the other view drawn was itself
+            continue
+        box = changed[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
+        assert box.all()  # one filled rectangle
+        side = torch.tensor([ys.max() - ys.min() + 1, xs.max() - xs.min() + 1]) / CROP
+        assert (side >= 0.15 - 2 / CROP).all() and (side <= 0.4 + 2 / CROP).all()
+        assert len(out[k][:, changed].unique()) == 1  # all of it from one other view
+
+
+def test_low_resolution_keeps_the_mean_and_loses_the_detail():
+    torch.manual_seed(5)
+    views = torch.rand(4, 3, CROP, CROP)
+    chosen = torch.tensor([True, False, True, False])
+    out = low_resolution(views.clone(), chosen)
+    torch.testing.assert_close(out[~chosen], views[~chosen], rtol=0, atol=0)
+    assert (out[chosen].mean((1, 2, 3)) - views[chosen].mean((1, 2, 3))).abs().max() < 0.01
+    detail = (out[chosen].diff(dim=-1).abs().mean()) / views[chosen].diff(dim=-1).abs().mean()
+    assert detail < 0.6
+
+
+def test_augment_keeps_known_joints_inside_the_view():
+    torch.manual_seed(6)
+    b = 64
+    windows = torch.rand(b, 3, WINDOW, WINDOW).half()
+    joints = torch.rand(b, NUM_JOINTS, 2) * 100 + 38
+    views, pts, known = augment(windows, joints, torch.ones(b, NUM_JOINTS, dtype=torch.bool))
+    assert views.shape == (b, 3, CROP, CROP) and not torch.isnan(views).any()
+    inside = ((pts >= 0) & (pts <= CROP - 1)).all(-1)
+    assert (inside | ~known).all() and known.float().mean() > 0.5
 
 
 def test_targets_are_distributions_peaked_at_the_joint_and_never_nan():
