@@ -72,7 +72,7 @@ def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarra
 
 def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotations]:
     """(train, val): LSP train minus its last n_val images + LSPet minus its last lspet_val;
-    val = those n_val LSP images (lspet_validation: the LSPet ones)."""
+    val = those n_val LSP images (`ds3d eval lsp --split lspet` scores the LSPet ones)."""
     lsp = load_lsp(split="train")
     n_fit = len(lsp) - cfg.n_val
     lspet = load_lspet()
@@ -82,9 +82,3 @@ def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotat
         keep = np.random.default_rng(cfg.seed).choice(len(train), cfg.max_images, replace=False)
         train = train.subset(np.sort(keep))
     return train, val
-
-
-def lspet_validation(cfg: TrainConfig) -> PoseAnnotations:
-    """The last cfg.lspet_val LSPet images, which the training of cfg holds out."""
-    lspet = load_lspet()
-    return lspet.subset(range(len(lspet) - cfg.lspet_val, len(lspet)))
