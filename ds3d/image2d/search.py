@@ -93,8 +93,8 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -246.49
-    score_width: float = 17.4
+    score_center: float = -249.36
+    score_width: float = 17.56
     max_aspect_ratio: float = 8.0
 
 

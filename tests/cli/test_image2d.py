@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from ds3d.cli import main as cli
+from ds3d.cli.image2d import evaluate_validation
 from ds3d.cli.parser import field_overrides
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.params import EstimatorParams
@@ -62,6 +63,17 @@ def test_eval_lsp_on_lspet_scores_the_placed_joints_of_images_with_a_torso(small
     # 10 have both ends of a torso diagonal placed (ds3d.evaluation.lsp.with_torso).
     assert report["n_images"] == 10 and report["n_images_without_torso"] == 2
     assert 0 <= report["psm"]["pck@0.2"] <= 1
+
+
+@pytest.mark.usefixtures("data_dir")
+def test_validation_scores_both_held_out_sets(small_model):
+    # what train-2d and train-jointnet record as the manifest's metrics.validation
+    result = evaluate_validation(small_model, TrainConfig(n_val=4, lspet_val=12))
+    assert result["n_images"] == 4  # LSP train im0997-im1000
+    lspet = result["lspet"]  # LSPet im09989-im10000, those with a torso diagonal scored
+    assert lspet["n_images"] + lspet.get("n_images_without_torso", 0) == 12
+    without = evaluate_validation(small_model, TrainConfig(n_val=4, lspet_val=0))
+    assert "lspet" not in without and without["psm"] == result["psm"]
 
 
 def test_set_takes_a_tuple_as_comma_separated_values():
