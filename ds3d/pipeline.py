@@ -61,7 +61,7 @@ PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or
 # calibrated probability (expected calibration error 0.038 on LSP train's held-out canvases,
 # `ds3d eval people --split train --start 700`, 0.026 on their harder kind, `--empty 0.2 --cut
 # 0.3`): answered where more likely a person than not. There 95.5 % of the answers were people,
-# at 89.9 % recall (at 0.2: 90.0 % of the answers).
+# at 89.9 % recall (at 0.2, 90.0 % of the answers were people).
 MIN_SCORE = 0.5
 
 

@@ -161,13 +161,11 @@ def cmd_train_jointnet(args) -> int:
 def evaluate_validation(model_dir: Path, cfg: TrainConfig) -> dict:
     """LSP's protocol on the images the training of `cfg` held out: LSP train's last n_val,
     and LSPet's last lspet_val under "lspet" (PCK over the joints LSPet places)."""
-    _, val = training_annotations(cfg)
+    _, val, lspet_val = training_annotations(cfg)
     estimator = PoseEstimator2D.load(model_dir)
     result = evaluate_2d(estimator, val)
-    if cfg.lspet_val:
-        lspet = load_lspet()
-        held_out = lspet.subset(range(len(lspet) - cfg.lspet_val, len(lspet)))
-        result["lspet"] = evaluate_2d(estimator, held_out)
+    if len(lspet_val):
+        result["lspet"] = evaluate_2d(estimator, lspet_val)
     return result
 
 

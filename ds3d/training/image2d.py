@@ -76,7 +76,7 @@ def train(
         shutil.rmtree(checkpoint, ignore_errors=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    train_ann, _ = training_annotations(cfg)
+    train_ann = training_annotations(cfg)[0]
     # One disjoint share of the images per layer: a context layer reads the maps of the layers
     # before it on images they never saw (stacking without leakage). Layer 1 draws a flip per
     # tree and image; later layers read precomputed maps, so each of their images has one flip.

@@ -70,15 +70,19 @@ def observer_centric(joints: np.ndarray, visible: np.ndarray) -> tuple[np.ndarra
     return joints[order], visible[order]
 
 
-def training_annotations(cfg: TrainConfig) -> tuple[PoseAnnotations, PoseAnnotations]:
-    """(train, val): LSP train minus its last n_val images + LSPet minus its last lspet_val;
-    val = those n_val LSP images (`ds3d eval lsp --split lspet` scores the LSPet ones)."""
+def training_annotations(
+    cfg: TrainConfig,
+) -> tuple[PoseAnnotations, PoseAnnotations, PoseAnnotations]:
+    """(train, val, lspet_val): LSP train minus its last n_val images + LSPet minus its last
+    lspet_val; val = those n_val LSP images, lspet_val those LSPet ones (none when 0)."""
     lsp = load_lsp(split="train")
     n_fit = len(lsp) - cfg.n_val
     lspet = load_lspet()
-    train = lsp.subset(range(n_fit)).concat(lspet.subset(range(len(lspet) - cfg.lspet_val)))
+    n_fit_lspet = len(lspet) - cfg.lspet_val
+    train = lsp.subset(range(n_fit)).concat(lspet.subset(range(n_fit_lspet)))
     val = lsp.subset(range(n_fit, len(lsp)))
+    lspet_val = lspet.subset(range(n_fit_lspet, len(lspet)))
     if cfg.max_images is not None:
         keep = np.random.default_rng(cfg.seed).choice(len(train), cfg.max_images, replace=False)
         train = train.subset(np.sort(keep))
-    return train, val
+    return train, val, lspet_val
