@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ds3d.cli.parser import add_model_options, add_people_options, field_overrides, write_report
+from ds3d.cli.parser import (
+    add_model_options,
+    add_people_options,
+    add_set_option,
+    field_overrides,
+    write_report,
+)
 from ds3d.evaluation.lsp import REFINEMENT_VARIANTS, evaluate_refinement
 from ds3d.fit.camera import ASSUMED_FOV_DEG
 
@@ -134,12 +140,17 @@ def register(commands, evals, benches) -> None:
     p = evals.add_parser(
         "people", help="people of any size in 640x480 canvases built from LSP: detection and PCK"
     )
-    p.add_argument("--split", choices=("test", "train"), default="test", help="LSP's people")
+    p.add_argument(
+        "--split",
+        choices=("test", "train", "lspet"),
+        default="test",
+        help="LSP's people, or LSPet's with every joint annotated",
+    )
     p.add_argument(
         "--start",
         type=int,
         default=0,
-        help="skip the split's first n images (train: 700 = held out)",
+        help="skip the split's first n images (held out: train 700, lspet 9000)",
     )
     p.add_argument("--count", type=int, default=200, help="canvases")
     p.add_argument("--seed", type=int, default=0, help="draws the canvases")
@@ -155,6 +166,7 @@ def register(commands, evals, benches) -> None:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--save", type=Path, help="also write the canvases as PNG into this folder")
     p.add_argument("--out", type=Path, help="JSON report")
+    add_set_option(p, "override a PipelineConfig field (e.g. search.proposal_floor=110)")
     add_model_options(p)
     p.set_defaults(func=eval_people)
 
@@ -392,14 +404,13 @@ def eval_people(args) -> int:
 
     import cv2
 
-    from ds3d.data.lsp import load_lsp
-    from ds3d.evaluation.people import calibration, protocol, score
-    from ds3d.pipeline import MIN_SCORE
+    from ds3d.evaluation.people import calibration, people_of, protocol, score
+    from ds3d.pipeline import MIN_SCORE, PipelineConfig
     from ds3d.util.progress import progress
 
     pipeline = load_pipeline(args)
-    annotations = load_lsp(split=args.split)
-    annotations = annotations.subset(range(args.start, len(annotations.image_paths)))
+    pipeline.config = PipelineConfig(**field_overrides(PipelineConfig, args.set))
+    annotations = people_of(args.split, args.start)
     canvases = protocol(annotations, args.count, args.seed, args.empty, args.cut)
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
@@ -431,6 +442,7 @@ def eval_people(args) -> int:
         "empty": args.empty,
         "cut": args.cut,
         "threads": args.threads,
+        "set": args.set,
         "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
         **score(canvases, answered),

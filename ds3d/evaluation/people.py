@@ -1,10 +1,12 @@
-"""People in photos: a protocol built from LSP test, and its detection and pose scores.
+"""People in photos: a protocol built from LSP (or LSPet), and its detection and pose scores.
 
-LSP's images are crops around one person. A canvas (640 x 480 by default) holds 1 to 3 of them,
-each scaled so that its person spans a drawn fraction of the canvas height (15-100 %), pasted at
-a random place where it covers no other person; the first pasted image (the largest person),
-its border replicated, also fills the rest of the canvas, so the background is image content
-without people. Everything is drawn from one seed: the same seed gives the same canvases.
+LSP's images are crops around one person; LSPet's too, its people those with all 14 joints
+annotated (an occluded joint left out would shrink the person's true box). A canvas (640 x 480
+by default) holds 1 to 3 of them, each scaled so that its person spans a drawn fraction of the
+canvas height (15-100 %), pasted at a random place where it covers no other person; the first
+pasted image (the largest person), its border replicated, also fills the rest of the canvas, so
+the background is image content without people. Everything is drawn from one seed: the same seed
+gives the same canvases.
 
 Two harder kinds, each a drawn share of the canvases (`protocol`'s `empty` and `cut`):
 - empty: no person at all, the canvas filled from the part of an LSP image beside its person
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 
 from ds3d.boxes import iou, person_boxes
-from ds3d.data.lsp import PoseAnnotations
+from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.evaluation.metrics import expected_calibration_error, pck, reliability
 from ds3d.io.images import read_image
 
@@ -203,6 +205,16 @@ def _fit_patch(patch, points, located, size):
     y0 = int(np.clip(centre[1] - height / 2, 0, max(ph - height, 0)))
     patch = patch[y0 : y0 + height, x0 : x0 + width]
     return np.ascontiguousarray(patch), points - np.array([x0, y0])
+
+
+def people_of(split: str, start: int = 0) -> PoseAnnotations:
+    """The people canvases are built from: LSP's split ("train", "test") or "lspet" (those of
+    its people with every joint annotated), after the first `start` images."""
+    annotations = load_lspet() if split == "lspet" else load_lsp(split=split)
+    annotations = annotations.subset(range(start, len(annotations.image_paths)))
+    if split == "lspet":
+        annotations = annotations.subset(np.flatnonzero(annotations.located.all(-1)))
+    return annotations
 
 
 def protocol(

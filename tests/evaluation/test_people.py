@@ -1,8 +1,8 @@
 import numpy as np
 
 from ds3d.boxes import iou, person_boxes
-from ds3d.data.lsp import load_lsp
-from ds3d.evaluation.people import match, protocol, score
+from ds3d.data.lsp import load_lsp, load_lspet
+from ds3d.evaluation.people import match, people_of, protocol, score
 
 
 def test_iou_and_greedy_matching_take_each_person_once():
@@ -78,3 +78,16 @@ def test_the_harder_kinds_hold_canvases_without_people_and_people_cut_by_the_edg
     assert perfect["answers_on_empty_canvases"] == 0
     phantom = [(np.full((1, 14, 2), 200.0) + np.arange(14)[:, None] * 10, np.ones(1))] * len(harder)
     assert score(harder, phantom)["answers_on_empty_canvases"] == len(empty)
+
+
+def test_lspet_people_are_those_with_every_joint_annotated(data_dir):
+    lspet = load_lspet()
+    people = people_of("lspet", start=9000)
+    held_out = lspet.located[9000:]
+    assert len(people.image_paths) == int(held_out.all(-1).sum()) > 0
+    assert people.located.all() and set(people.image_paths) <= set(lspet.image_paths[9000:])
+    # a whole person's box is their true box: the protocol builds canvases of them
+    canvas = protocol(people, 3, seed=0)[0]
+    assert canvas.located.all() and (canvas.heights > 0).all()
+    # LSP's splits are taken as they are, from `start` on
+    assert people_of("train", start=700).image_paths == load_lsp(split="train").image_paths[700:]
