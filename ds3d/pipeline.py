@@ -1,8 +1,8 @@
 """ds3d.Pipeline: images in, 2D and 3D poses out, by the dual-source approach end to end.
 
     search           without a box, where the people are (ds3d.image2d.search): each
-                     proposal's box, and the whole image's, goes through the 2D stage as
-                     its own crop
+                     proposal's box, and the whole image's where it proposes at most one
+                     person, goes through the 2D stage as its own crop
     2D stage         unaries + PSM on a 6-scale pyramid -> x (ds3d.image2d.estimator)
     who is answered  per image, non-maximum suppression of the crops' poses by score
                      (ds3d.boxes), the best ("best") or those scoring min_score ("all");
@@ -58,10 +58,10 @@ from ds3d.util.timing import stage_timer
 STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
 PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or every one
 # Pipeline.estimate's default: people less likely than this are not answered. The score is a
-# calibrated probability (expected calibration error 0.038 on LSP train's held-out canvases,
-# `ds3d eval people --split train --start 700`, 0.026 on their harder kind, `--empty 0.2 --cut
-# 0.3`): answered where more likely a person than not. There 95.5 % of the answers were people,
-# at 89.9 % recall (at 0.2, 90.0 % of the answers were people).
+# calibrated probability (expected calibration error 0.032 on LSP train's held-out canvases,
+# `ds3d eval people --split train --start 700`, 0.037 on their harder kind, `--empty 0.2 --cut
+# 0.3`): answered where more likely a person than not. There 96.7 % of the answers were people,
+# at 89.7 % recall (at 0.2, 93.1 % of the answers were people).
 MIN_SCORE = 0.5
 
 
@@ -216,10 +216,11 @@ class Pipeline:
     ) -> list[Candidate]:
         """The crops of B images: each given box, whose scale the 2D stage chooses; for an
         image without one, its people search's proposals (ds3d.image2d.search), whose scale
-        the search has found, and the whole image as one more box, which finds people the
-        image's edge cuts, unless a proposal's crop already holds most of the image
-        (SearchParams.whole_image_cover). people: per image, as Pipeline.estimate (None: all
-        "all"); an image asked for its best person has its best proposal alone estimated.
+        the search has found, and, where it proposes at most one person, the whole image as
+        one more box, which finds people the image's edge cuts, unless the proposal's crop
+        already holds most of the image (SearchParams.whole_image_cover). people: per image,
+        as Pipeline.estimate (None: all "all"); an image asked for its best person has its
+        best proposal alone estimated.
         (Estimating the others too and answering the best by the 2D stage's score gave 79.76
         against 79.93 % PCK held out, ds3d eval lsp-pipeline --searched, at twice the 2D
         stage's time on every image with a second proposal.)"""
@@ -228,10 +229,14 @@ class Pipeline:
         out = [Candidate(i, box, True, False) for i, box in enumerate(boxes) if box is not None]
         for i, found in zip(searched, proposals, strict=True):
             whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
-            best_only = people is not None and people[i] == "best"
-            boxes = self._proposal_boxes(found, 1 if best_only else self.config.search.max_people)
-            out += [Candidate(i, box, False, True) for box in boxes]
-            if not any(self._covers(box, images[i]) for box in boxes):
+            proposed = self._proposal_boxes(found, self.config.search.max_people)
+            # The whole image is one person's crop: where the search found several people,
+            # its one pose would join them.
+            alone = len(proposed) <= 1
+            if people is not None and people[i] == "best":
+                proposed = proposed[:1]
+            out += [Candidate(i, box, False, True) for box in proposed]
+            if alone and not any(self._covers(box, images[i]) for box in proposed):
                 out.append(Candidate(i, whole, False, False, found.levels))
         return out
 

@@ -303,13 +303,17 @@ def test_the_whole_image_is_no_second_crop_of_a_person_who_fills_it():
 
 
 def test_an_image_asked_for_its_best_person_has_its_best_proposal_alone_estimated():
+    """...and where the search proposes several people, the whole image is no crop of its
+    own, for "best" too: its one pose would join them."""
     image = np.zeros((480, 640, 3), np.uint8)
     person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
     found = Proposals(np.stack([person, person + 300.0]), np.array([300.0, 200.0], np.float32), [])
-    whole = [0.0, 0.0, 640.0, 480.0]
     every = [c.box.tolist() for c in _candidates(found, image, "all")]
-    assert every == [[10.0, 5.0, 60.0, 90.0], [310.0, 305.0, 360.0, 390.0], whole]
-    assert [c.box.tolist() for c in _candidates(found, image, "best")] == [every[0], whole]
+    assert every == [[10.0, 5.0, 60.0, 90.0], [310.0, 305.0, 360.0, 390.0]]
+    assert [c.box.tolist() for c in _candidates(found, image, "best")] == [every[0]]
+    alone = Proposals(person[None], np.array([300.0], np.float32), [])
+    whole = [0.0, 0.0, 640.0, 480.0]
+    assert [c.box.tolist() for c in _candidates(alone, image, "best")] == [every[0], whole]
 
 
 def _candidates(found: Proposals, image: np.ndarray, people: str = "all"):

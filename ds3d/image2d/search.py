@@ -68,10 +68,10 @@ class SearchParams:
         `overlap` but share joints, which people side by side do not.
     max_people: at most this many proposals per image go on to the full 2D stage (asked for
         its best person alone, an image sends its best proposal).
-    whole_image_cover: the whole image goes through the 2D stage as one more crop (it finds
-        people the image's edge cuts) unless a proposal's crop (crops.crop_region) holds at
-        least this fraction of it: in a photo that is a tight crop around its person (LSP's)
-        both are that person, estimated twice.
+    whole_image_cover: where the search proposes at most one person, the whole image goes
+        through the 2D stage as one more crop (it finds people the image's edge cuts) unless
+        the proposal's crop (crops.crop_region) holds at least this fraction of it: in a photo
+        that is a tight crop around its person (LSP's) both are that person, estimated twice.
     proposal_floor: proposals whose root score is below it do not (the best one always does).
     score_center, score_width: person_probability = sigmoid((psm score - center) / width).
     max_aspect_ratio: the longest image side searched, in multiples of the shortest. Every
