@@ -416,14 +416,15 @@ def eval_people(args) -> int:
         args.save.mkdir(parents=True, exist_ok=True)
         for i, canvas in enumerate(canvases):
             cv2.imwrite(str(args.save / f"{i:04d}.png"), canvas.image[..., ::-1])
-    candidates = []  # per canvas: every person answered at min_score 0, (poses, scores)
+    candidates = []  # per canvas: every person answered at min_score 0, (poses, scores, x)
     with progress(total=len(canvases), desc="people", unit="img") as bar:
         for first in range(0, len(canvases), args.batch):
             part = canvases[first : first + args.batch]
             result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
             for i in range(len(part)):
                 own = result.rows(torch.nonzero(result.image_index == i).view(-1))
-                candidates.append((own.joints_2d.numpy(), own.score.numpy()))
+                poses, initial = own.joints_2d.numpy(), own.joints_2d_initial.numpy()
+                candidates.append((poses, own.score.numpy(), initial))
             bar.update(len(part))
     # The speed as a user meets it: a second pass at the default min_score, which lifts only
     # the people answered (min_score 0 lifts every candidate).
@@ -434,7 +435,8 @@ def eval_people(args) -> int:
             pipeline.estimate([c.image for c in part], people="all")
             bar.update(len(part))
         seconds = time.perf_counter() - start
-    answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s in candidates]
+    answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s, _ in candidates]
+    typical = pipeline.estimator.mixtures.typical_lengths()
     report = {
         "split": args.split,
         "start": args.start,
@@ -446,11 +448,11 @@ def eval_people(args) -> int:
         "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
         **score(canvases, answered),
-        "calibration": calibration(canvases, candidates, pipeline.config.search),
+        "calibration": calibration(canvases, candidates, pipeline.config.search, typical),
         "by_min_score": {},
     }
     for threshold in (0.1, 0.2, 0.3, 0.5, 0.7):
-        kept = [(poses[s >= threshold], s[s >= threshold]) for poses, s in candidates]
+        kept = [(poses[s >= threshold], s[s >= threshold]) for poses, s, _ in candidates]
         figures = score(canvases, kept)
         report["by_min_score"][str(threshold)] = {
             "recall": {name: round(b["recall"], 4) for name, b in figures["bins"].items()},

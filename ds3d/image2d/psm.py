@@ -87,6 +87,11 @@ class PairwiseMixtures:
     def n_components(self) -> int:
         return self.log_gamma.shape[2]
 
+    def typical_lengths(self) -> Tensor:
+        """(13,) px at the working scale: each limb's typical length, the median over its
+        components of the length of their mean offset (of the first batch element)."""
+        return self.mean[0].norm(dim=-1).median(dim=-1).values
+
     def to(self, device: torch.device | str) -> PairwiseMixtures:
         return PairwiseMixtures(
             self.mean.to(device), self.var.to(device), self.log_gamma.to(device)

@@ -10,8 +10,8 @@ logits score each person on its own, comparably across images and levels. The pr
 levels then go through non-maximum suppression (ds3d.boxes.suppress) on their pose's boxes.
 
 The proposals only say where and how large people are: each is then estimated in its box by
-the full 2D stage (PoseEstimator2D.estimate), whose PSM score `person_probability` maps to the
-probability that the box holds a person.
+the full 2D stage (PoseEstimator2D.estimate), whose PSM score and limbs' proportions
+`person_probability` maps to the probability that the box holds a person.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from ds3d.image2d.jointnet import (
     padded_logits_each,
 )
 from ds3d.image2d.psm import PairwiseMixtures, RootScores
+from ds3d.skeleton import LIMBS
 from ds3d.util.groups import group_rows
 
 # The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
@@ -73,7 +74,8 @@ class SearchParams:
         the proposal's crop (crops.crop_region) holds at least this fraction of it: in a photo
         that is a tight crop around its person (LSP's) both are that person, estimated twice.
     proposal_floor: proposals whose root score is below it do not (the best one always does).
-    score_center, score_width: person_probability = sigmoid((psm score - center) / width).
+    score_center, score_width, stretch_weight: person_probability = sigmoid((psm score -
+        center) / width - stretch_weight * limb_stretch).
     max_aspect_ratio: the longest image side searched, in multiples of the shortest. Every
         level scales the image height to about the same number of px, so a level's pixels
         grow with the ratio and its PSM's max-convolution with the ratio squared: without a
@@ -93,8 +95,9 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -249.36
-    score_width: float = 17.56
+    score_center: float = -276.4
+    score_width: float = 20.71
+    stretch_weight: float = 1.734
     max_aspect_ratio: float = 8.0
 
 
@@ -235,7 +238,25 @@ def _suppressed(
     return Proposals(poses_all[kept].astype(np.float32), scores_all[kept], levels)
 
 
-def person_probability(psm_score: torch.Tensor, params: SearchParams) -> torch.Tensor:
-    """The 2D stage's PSM score (Estimate2D.score) of a person box -> the probability that it
-    holds a person: a logistic fit on LSP train's held-out images (SearchParams)."""
-    return torch.sigmoid((psm_score - params.score_center) / params.score_width)
+def limb_stretch(joints_2d: torch.Tensor, typical: torch.Tensor) -> torch.Tensor:
+    """How far out of proportion a pose's limbs are: joints_2d (B, 14, 2) px, typical (13,) each
+    limb's typical length (PairwiseMixtures.typical_lengths, ds3d.skeleton.LIMBS order) ->
+    (B,) the log of the longest limb relative to its typical length over the median limb's, 0
+    for limbs in proportion. The PSM scores each limb on its own, so it can answer a small
+    person with a limb drawn out along an edge, or a person's legs as a whole one: such poses
+    are far out of proportion, people seldom (foreshortening shortens limbs, and the median
+    takes the person's scale)."""
+    child, parent = (torch.tensor(side) for side in zip(*LIMBS, strict=True))
+    relative = (joints_2d[:, child] - joints_2d[:, parent]).norm(dim=-1) / typical  # (B, 13)
+    median = relative.median(dim=-1).values.clamp_min(1e-6)
+    return (relative.amax(dim=-1) / median).clamp_min(1.0).log()
+
+
+def person_probability(
+    psm_score: torch.Tensor, stretch: torch.Tensor, params: SearchParams
+) -> torch.Tensor:
+    """The 2D stage's PSM score (Estimate2D.score) of a person box (B,) and its pose's
+    limb_stretch (B,) -> the probability that it holds a person: a logistic fit on LSP train's
+    held-out images (SearchParams)."""
+    z = (psm_score - params.score_center) / params.score_width - params.stretch_weight * stretch
+    return torch.sigmoid(z)

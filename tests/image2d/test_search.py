@@ -4,8 +4,14 @@ import torch
 
 from ds3d.boxes import person_boxes, suppress
 from ds3d.image2d.psm import RootScores, infer
-from ds3d.image2d.search import SearchParams, level_extents, local_peaks
-from ds3d.skeleton import NUM_JOINTS
+from ds3d.image2d.search import (
+    SearchParams,
+    level_extents,
+    limb_stretch,
+    local_peaks,
+    person_probability,
+)
+from ds3d.skeleton import LIMBS, NUM_JOINTS
 from tests.image2d.test_psm import STANDING, peaked_unaries, planted_problem
 
 
@@ -60,3 +66,30 @@ def test_suppression_keeps_the_better_of_overlapping_people():
     poses = np.stack([pose, pose + 3, pose + 500])
     kept = suppress(person_boxes(poses), np.array([0.2, 0.9, 0.5]))
     assert kept.tolist() == [1, 2]
+
+
+def test_limbs_out_of_proportion_stretch_a_pose_and_lower_its_probability():
+    typical = torch.tensor([30.0 + 3 * k for k in range(len(LIMBS))])
+    pose = torch.zeros(NUM_JOINTS, 2)  # a tree of limbs of the typical lengths, x 0.7
+    for child, parent in sorted(LIMBS, key=lambda limb: _depth(limb[0])):
+        pose[child] = pose[parent] + 0.7 * typical[LIMBS.index((child, parent))] * torch.tensor(
+            [np.cos(child), np.sin(child)], dtype=torch.float32
+        )
+    drawn_out = pose.clone()  # the left ankle's limb three times its length
+    ankle = LIMBS.index(next(limb for limb in LIMBS if limb[0] == 5))
+    drawn_out[5] = pose[LIMBS[ankle][1]] + 3 * (pose[5] - pose[LIMBS[ankle][1]])
+    stretch = limb_stretch(torch.stack([pose, drawn_out, pose * 4 + 100]), typical)
+    torch.testing.assert_close(stretch[[0, 2]], torch.zeros(2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(stretch[1], torch.tensor(float(np.log(3))), atol=1e-5, rtol=0)
+    assert limb_stretch(torch.zeros(1, NUM_JOINTS, 2), typical).item() == 0  # no limbs at all
+    params = SearchParams()
+    same = torch.full((2,), -250.0)
+    probability = person_probability(same, stretch[:2], params)
+    assert probability[1] < probability[0]
+    assert (person_probability(same + 20, stretch[:2], params) > probability).all()
+
+
+def _depth(joint: int) -> int:
+    """How many limbs lie between a joint and the root."""
+    parents = dict(LIMBS)
+    return 0 if joint not in parents else 1 + _depth(parents[joint])
