@@ -257,7 +257,8 @@ class Pipeline:
         SearchParams.whole_image_cover of the image's area."""
         height, width = image.shape[:2]
         (x0, y0, x1, y1), _ = crop_region(box, width, height, self.estimator.params)
-        return (x1 - x0) * (y1 - y0) >= self.config.search.whole_image_cover * width * height
+        inside = (min(x1, width) - max(x0, 0)) * (min(y1, height) - max(y0, 0))
+        return inside >= self.config.search.whole_image_cover * width * height
 
     def estimate_2d(self, images: list[np.ndarray], candidates: list[Candidate]) -> Estimate2D:
         """The 2D stage of every candidate, in the candidates' order: those of known scale at

@@ -20,7 +20,8 @@ class Person:
 
     box: (4,) float32 x0, y0, x1, y1 px, the box of its joints. score: P(a person) in [0, 1].
     person_found: the score at least min_score, or a box was given. joints_2d: (14, 2) float32
-    px, the refined pose; joints_2d_initial: (14, 2), the 2D stage's. joints_3d: (14, 3) float32
+    px, the refined pose (a joint the photo cuts off lies past its edges, as the box then);
+    joints_2d_initial: (14, 2), the 2D stage's. joints_3d: (14, 3) float32
     mm, camera-oriented, root at the hip midpoint. root_position: (3,) float32 mm, the hip
     midpoint in camera coordinates (NaN where no camera was known), placed with focal length
     focal_px, the camera's or, when focal_assumed, an assumed one. confidence: (14,) float32 in

@@ -115,9 +115,15 @@ class JointAngles(BaseModel):
 
 
 class Person(BaseModel):
-    box: list[float] = Field(description="[x0, y0, x1, y1] pixels, the box of the joints")
+    box: list[float] = Field(
+        description="[x0, y0, x1, y1] pixels, the box of the joints (past the image's edges"
+        " where the photo cuts the person off)"
+    )
     score: float = Field(description="probability in [0, 1] that this is a person")
-    joints_2d: list[Point2] = Field(description="14 joints as [x, y] pixels of the input image")
+    joints_2d: list[Point2] = Field(
+        description="14 joints as [x, y] pixels of the input image; a joint the photo cuts off"
+        " lies past its edges (negative, or beyond its width or height)"
+    )
     joints_3d: list[Point3] = Field(
         description="14 joints as [x, y, z] millimetres, camera-oriented (x right, y down, z away"
         " from the camera), root at the hip midpoint"

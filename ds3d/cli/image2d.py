@@ -15,7 +15,7 @@ from ds3d.cli.parser import DEFAULT_IMAGE2D, add_set_option, field_overrides, wr
 from ds3d.data.lsp import load_lsp, load_lspet
 from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
-from ds3d.image2d.model_files import record_metrics, replace_jointnet, training_setup
+from ds3d.image2d.model_files import NET_FILES, record_metrics, replace_jointnet, training_setup
 from ds3d.image2d.params import EstimatorParams, InferenceParams
 from ds3d.training.config import TrainConfig
 from ds3d.training.image2d import CHECKPOINT_DIR, train
@@ -82,6 +82,11 @@ def register(commands, evals, benches) -> None:
     j.add_argument("--threads", type=int, default=2)
     j.add_argument("--no-eval", action="store_true", help="skip the validation metrics")
     j.add_argument("--resume", action="store_true", help=RESUME)
+    j.add_argument(
+        "--from-current",
+        action="store_true",
+        help="go on training the model's joint network rather than start from scratch",
+    )
     add_set_option(j, "a TrainConfig jointnet_* field to train with (e.g. jointnet_epochs=40)")
     j.set_defaults(func=cmd_train_jointnet)
 
@@ -149,7 +154,11 @@ def cmd_train_jointnet(args) -> int:
     if not args.resume:
         checkpoint.unlink(missing_ok=True)
     with logging_above_bars():
-        state, seconds = fit_jointnet(training_annotations(cfg)[0], params, cfg, checkpoint)
+        init = None
+        if args.from_current:
+            init = torch.load(args.model / NET_FILES["jointnet"], weights_only=True)
+        annotations = training_annotations(cfg)[0]
+        state, seconds = fit_jointnet(annotations, params, cfg, checkpoint, init)
     manifest = replace_jointnet(args.model, state, cfg.jointnet_shape(), asdict(cfg), seconds)
     shutil.rmtree(args.model / CHECKPOINT_DIR)
     if not args.no_eval:

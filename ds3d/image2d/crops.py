@@ -43,13 +43,16 @@ def crop_region(
     box, width: int, height: int, params: EstimatorParams
 ) -> tuple[tuple[int, int, int, int], float]:
     """The region of a (width, height) px image cropped around a person box (x0, y0, x1, y1)
-    px: the box with box_margin of the person's extent on every side, within the image.
-    Returns ((x0, y0, x1, y1) int px, the person's extent in px)."""
+    px: the box with box_margin of the person's extent on every side, within the image, widened
+    by beyond_edge of the extent on each side where the box reaches past it. Returns ((x0, y0,
+    x1, y1) int px, the person's extent in px)."""
     x0, y0, x1, y1 = (float(v) for v in box)
     extent = max(x1 - x0, y1 - y0) / params.box_to_extent
-    margin = params.box_margin * extent
-    cx0, cy0 = max(int(x0 - margin), 0), max(int(y0 - margin), 0)
-    cx1, cy1 = min(int(np.ceil(x1 + margin)), width), min(int(np.ceil(y1 + margin)), height)
+    margin, beyond = params.box_margin * extent, int(params.beyond_edge * extent)
+    cx0 = max(int(x0 - margin), -beyond if x0 < 0 else 0)
+    cy0 = max(int(y0 - margin), -beyond if y0 < 0 else 0)
+    cx1 = min(int(np.ceil(x1 + margin)), width + (beyond if x1 > width else 0))
+    cy1 = min(int(np.ceil(y1 + margin)), height + (beyond if y1 > height else 0))
     return (cx0, cy0, cx1, cy1), extent
 
 
@@ -62,12 +65,24 @@ def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> 
                 f"image {i} must be (H, W, 3) uint8, got {image.shape} {image.dtype}"
             )
         box = None if bboxes is None else bboxes[i]
-        if box is None:
-            extent = max(image.shape[:2]) / params.image_to_extent
+        h, w = image.shape[:2]
+        if box is None:  # within the image: reaching past it would double a small image's cost
+            extent = max(h, w) / params.image_to_extent
             out.append(Crop(image, 0, 0, params.canonical_extent / extent))
             continue
-        h, w = image.shape[:2]
         (cx0, cy0, cx1, cy1), extent = crop_region(checked_box(box, w, h), w, h, params)
-        crop = np.ascontiguousarray(image[cy0:cy1, cx0:cx1])
-        out.append(Crop(crop, cx0, cy0, params.canonical_extent / extent))
+        out.append(
+            Crop(_cropped(image, cx0, cy0, cx1, cy1), cx0, cy0, params.canonical_extent / extent)
+        )
     return out
+
+
+def _cropped(image: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """The (y1 - y0, x1 - x0, 3) region of an image at (x0, y0) px, black where it lies past the
+    image's edges (crop_region's beyond_edge)."""
+    h, w = image.shape[:2]
+    inside = image[max(y0, 0) : min(y1, h), max(x0, 0) : min(x1, w)]
+    pad = (max(-y0, 0), max(y1 - h, 0), max(-x0, 0), max(x1 - w, 0))
+    if not any(pad):
+        return np.ascontiguousarray(inside)
+    return cv2.copyMakeBorder(inside, *pad, cv2.BORDER_CONSTANT, value=(0, 0, 0))

@@ -219,10 +219,12 @@ def _crop_logits(logits: Tensor, height: int, width: int) -> Tensor:
 @dataclass(frozen=True)
 class ScaledLogits:
     """padded_logits (1, 14, h, w) of an image resized by `scale` (resized px per image px,
-    (x, y)): the search's levels, off which the 2D stage reads its crops' maps (read_logits)."""
+    (x, y)) with a border of `border` px of zeros on every side: the search's levels, off which
+    the 2D stage reads its crops' maps (read_logits)."""
 
     logits: Tensor
     scale: tuple[float, float]
+    border: int = 0
 
 
 def read_logits(
@@ -241,7 +243,8 @@ def read_logits(
         return None
     ratio = (nearest.scale[0] / scale[0], nearest.scale[1] / scale[1])
     shift = tuple(
-        (0.5 / f + o) * v - 0.5 for f, o, v in zip(scale, offset, nearest.scale, strict=True)
+        (0.5 / f + o) * v - 0.5 + nearest.border
+        for f, o, v in zip(scale, offset, nearest.scale, strict=True)
     )
     return resampled_logits(nearest.logits, ratio, (shift[0], shift[1]), height, width)
 

@@ -41,6 +41,13 @@ class InferenceParams:
     image_to_extent: float = 1.35  # a full image without a box: its longer side / person extent
     box_to_extent: float = 1.0  # a person box: its longer side / person extent
     box_margin: float = 0.35  # context kept around a box, fraction of the extent per side
+    # How far a person box's crop reaches past the image's edge where the box itself does (as a
+    # search proposal's does for a person the frame cuts, SearchParams.beyond_edge), as a
+    # fraction of the person's extent: black there (zeros to the joint network, which learnt
+    # where the joints a photo cuts off lie), so that the PSM places them there rather than
+    # squeezing the person into the frame. Only there: a black band beside a tight crop's
+    # person costs its pose (docs/tuning.md).
+    beyond_edge: float = 0.0
     unary_blur: int = 2  # box radius (cells) on the final maps before the log
     unary_weight: float = 2.0  # the PSM sees unary_weight * unaries (relative to the binaries)
     # Each joint of the PSM's MAP moves to the centroid of its unary probabilities ^ sharpness

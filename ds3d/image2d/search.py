@@ -76,6 +76,13 @@ class SearchParams:
     proposal_floor: proposals whose root score is below it do not (the best one always does).
     score_center, score_width, stretch_weight: person_probability = sigmoid((psm score -
         center) / width - stretch_weight * limb_stretch).
+    beyond_edge: how far each level reaches past the image's edges, as a fraction of the
+        person extent it seeks: zeros there to the joint network, which learnt where the joints
+        a photo cuts off lie (ds3d.training.jointnet.edge_cut), so that a person the frame cuts
+        is proposed with them there (and a crop reaching past the edge, InferenceParams.
+        beyond_edge), where the PSM could only squeeze them inside. Not further: in photos that
+        are tight crops around their person, proposals then reach past the edges more often
+        than people do (docs/tuning.md).
     max_aspect_ratio: the longest image side searched, in multiples of the shortest. Every
         level scales the image height to about the same number of px, so a level's pixels
         grow with the ratio and its PSM's max-convolution with the ratio squared: without a
@@ -95,10 +102,11 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -276.4
-    score_width: float = 20.71
-    stretch_weight: float = 1.734
+    score_center: float = -323.64
+    score_width: float = 26.41
+    stretch_weight: float = 2.307
     max_aspect_ratio: float = 8.0
+    beyond_edge: float = 0.15
 
 
 @dataclass
@@ -173,13 +181,19 @@ def propose(
             resized = resize_image(image, canonical_extent / extent)
             if min(resized.shape[:2]) >= 2 * STRIDE * pool:  # else smaller than a few PSM cells
                 levels.append((i, resized))
-    labs = [lab_channels(torch.from_numpy(r).to(device)[None]) for _, r in levels]
+    # The levels reach `beyond` px past the image's edges, whole network cells of zeros.
+    beyond = round(params.beyond_edge * canonical_extent / STRIDE) * STRIDE
+    labs = [
+        F.pad(lab_channels(torch.from_numpy(r).to(device)[None]), (beyond,) * 4) for _, r in levels
+    ]
     logits = padded_logits_each(net, labs)
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
-        grid = logits_to_grid(lg, resized.shape[0], resized.shape[1], STRIDE)
+        grid = logits_to_grid(
+            lg, resized.shape[0] + 2 * beyond, resized.shape[1] + 2 * beyond, STRIDE
+        )
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
-        # Cells past the level's are -inf: no root or joint can score there.
+        # Cells past the level's reach are -inf: no root or joint can score there.
         rows, cols = grid.shape[-2:]
         grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
     found = _level_people([g * unary_weight for g in grids], mixtures, STRIDE * pool, params)
@@ -188,9 +202,13 @@ def propose(
     views: list[list[ScaledLogits]] = [[] for _ in images]
     for (i, resized), lg, (pose, score) in zip(levels, logits, found, strict=True):
         height, width = images[i].shape[:2]
-        views[i].append(ScaledLogits(lg, (resized.shape[1] / width, resized.shape[0] / height)))
-        poses[i].append(pose * np.array([width / resized.shape[1], height / resized.shape[0]]))
-        scores[i].append(score)
+        scale = (resized.shape[1] / width, resized.shape[0] / height)
+        views[i].append(ScaledLogits(lg, scale, beyond))
+        pose = (pose - beyond) / np.array(scale)
+        # A person the image shows: at least half of the joints within it.
+        shown = ((pose >= 0) & (pose < (width, height))).all(-1).mean(-1) >= 0.5
+        poses[i].append(pose[shown])
+        scores[i].append(score[shown])
     return [_suppressed(*image, params) for image in zip(poses, scores, views, strict=True)]
 
 

@@ -32,6 +32,9 @@ class TrainConfig:
     jointnet_blocks: tuple[int, int, int] = JointNetShape.blocks
     # its views degraded (ds3d.training.jointnet.degrade): cut, occluded, blurred, grey
     jointnet_degraded: bool = False
+    # the share of its views cut by an image edge, the joints beyond it their targets still
+    # (ds3d.training.jointnet.edge_cut)
+    jointnet_edge_cut: float = 0.0
     bg_per_image: int = 64
     max_depth: int = 20
     min_samples_leaf: int = 20

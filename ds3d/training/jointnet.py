@@ -4,9 +4,10 @@ The data is one WINDOW x WINDOW window of Lab channels per image at the working 
 the person (jointnet_windows). Every draw cuts a CROP x CROP view from it (view_windows), rotated
 (+-ROTATION degrees), zoomed (x ZOOM[0]-ZOOM[1]: the pyramid's residual scale error and more),
 shifted, mirrored at random (left and right labels swapped with it) and jittered in lightness
-and colour; then, where TrainConfig.jointnet_degraded says so, made to look less like an LSP
-crop (degrade): cut by an image edge, occluded by a patch of another view, blurred as a small
-person scaled up is. The target of a joint is a Gaussian of SIGMA output cells around it,
+and colour; a share of them (TrainConfig.jointnet_edge_cut) cut by an image edge, the joints past
+it still targets (edge_cut); then, where TrainConfig.jointnet_degraded says so, made to look less
+like an LSP crop (degrade): occluded by a patch of another view, blurred as a small person scaled
+up is. The target of a joint is a Gaussian of SIGMA output cells around it,
 normalised over the cells; the loss is the cross-entropy between it and the log-softmax of the
 joint's map, over the joints whose position is annotated (PoseAnnotations.located) and that lie
 in the view.
@@ -47,10 +48,10 @@ ZOOM = (1 / 1.3, 1 / 0.7)  # window px per input px: the person at 0.7-1.3 times
 SHIFT = 12.0  # px
 SIGMA = 1.0  # output cells
 BATCH = 64
-# degrade: how often each happens to a view, and how much
-EDGE_CUT = 0.25  # a view cut by an image edge: what lies beyond is zeros, as beyond a photo
+# A view cut by an image edge (edge_cut; how often: TrainConfig.jointnet_edge_cut)
 EDGE_SIDES = (0.2, 0.2, 0.1, 0.5)  # the edge at the left, right, top, bottom (legs cut most)
 EDGE_SHARE = (0.1, 0.4)  # of the person's extent beyond the edge
+# degrade: how often each happens to a view, and how much
 OCCLUSION = 0.3  # a view with a rectangle of another view pasted over it
 OCCLUDER = (0.15, 0.4)  # its sides, of the view's
 LOW_RESOLUTION = 0.3  # a view shrunk by a factor of 1.5-3 and scaled back up
@@ -58,13 +59,20 @@ GREY = 0.1  # a view without colour
 
 
 def augment(
-    windows: Tensor, joints: Tensor, located: Tensor, degraded: bool = True
+    windows: Tensor,
+    joints: Tensor,
+    located: Tensor,
+    degraded: bool = True,
+    cut: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Random views of a batch (view_windows, then degrade where `degraded`): windows (b, 3,
-    WINDOW, WINDOW), joints (b, 14, 2) window px, located (b, 14) -> (b, 3, CROP, CROP) float32,
-    joints (b, 14, 2) in view px, (b, 14) bool of the located joints that lie in the view."""
-    views = view_windows(windows, joints, located)
-    return degrade(*views) if degraded else views
+    """Random views of a batch (view_windows; a share `cut` of them cut by an image edge,
+    edge_cut; then degrade where `degraded`): windows (b, 3, WINDOW, WINDOW), joints (b, 14, 2)
+    window px, located (b, 14) -> (b, 3, CROP, CROP) float32, joints (b, 14, 2) in view px,
+    (b, 14) bool of the located joints that lie in the view."""
+    views, pts, known = view_windows(windows, joints, located)
+    if cut:  # drawn only then: a training without cuts keeps its random stream
+        views = edge_cut(views, pts, known, torch.rand(len(views)) < cut)
+    return degrade(views, pts, known) if degraded else (views, pts, known)
 
 
 def view_windows(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -99,23 +107,23 @@ def view_windows(windows: Tensor, joints: Tensor, located: Tensor) -> tuple[Tens
 
 def degrade(views: Tensor, joints: Tensor, known: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Views (b, 3, CROP, CROP) with their joints (b, 14, 2) view px and known (b, 14) bool made
-    to look like people in other photos than LSP's tight, sharp crops (the rates above): cut by
-    an image edge (edge_cut: the joints beyond it no longer known), a patch of another view of
-    the batch over them (occlude; the joints under it stay known: the network learns to place
-    hidden joints from the rest of the person), shrunk and scaled back up (low_resolution),
-    without colour. Returns the same three, views changed in place."""
+    to look like people in other photos than LSP's tight, sharp crops (the rates above): a
+    patch of another view of the batch over them (occlude; the joints under it stay known: the
+    network learns to place hidden joints from the rest of the person), shrunk and scaled back
+    up (low_resolution), without colour. Returns the same three, views changed in place."""
     b = len(views)
-    views, known = edge_cut(views, joints, known, torch.rand(b) < EDGE_CUT)
     views = occlude(views, torch.rand(b) < OCCLUSION)
     views = low_resolution(views, torch.rand(b) < LOW_RESOLUTION)
     views[:, 1:] *= (torch.rand(b) >= GREY)[:, None, None, None]
     return views, joints, known
 
 
-def edge_cut(views: Tensor, joints: Tensor, known: Tensor, chosen: Tensor) -> tuple[Tensor, Tensor]:
+def edge_cut(views: Tensor, joints: Tensor, known: Tensor, chosen: Tensor) -> Tensor:
     """The chosen views (chosen: (b,) bool) cut by an image edge (EDGE_SIDES) that leaves a drawn
     share (EDGE_SHARE) of their known joints' extent beyond it: those pixels zeros (what the
-    network sees beyond a photo's border), those joints unknown. Returns views, known."""
+    network sees beyond a photo's border). The joints beyond it stay known: the network learns
+    where a joint the photo cuts off lies, from the person it sees, and the 2D stage's grid
+    reaches past the image's edges for it. Returns views."""
     b = len(views)
     side = torch.multinomial(torch.tensor(EDGE_SIDES), b, replacement=True)  # (b,)
     share = torch.empty(b).uniform_(*EDGE_SHARE)
@@ -126,14 +134,12 @@ def edge_cut(views: Tensor, joints: Tensor, known: Tensor, chosen: Tensor) -> tu
     high = torch.where(known, coord, -math.inf).amax(1)
     cut = torch.where(far, high - share * (high - low), low + share * (high - low))
     chosen = chosen & known.any(1)
-    beyond_joint = torch.where(far[:, None], coord > cut[:, None], coord < cut[:, None])
-    known = known & ~(chosen[:, None] & beyond_joint)
     px = torch.arange(views.shape[-1], dtype=torch.float32)
     pos = torch.where(axis[:, None, None] == 0, px[None, None, :], px[None, :, None])  # (b,H,W)
     cut_px = cut[:, None, None]
     beyond = torch.where(far[:, None, None], pos > cut_px, pos < cut_px) & chosen[:, None, None]
     views.masked_fill_(beyond[:, None], 0.0)
-    return views, known
+    return views
 
 
 def occlude(views: Tensor, chosen: Tensor) -> Tensor:
@@ -194,10 +200,14 @@ def train_jointnet(
     shape: JointNetShape = JointNetShape(),
     checkpoint: Path | None = None,
     degraded: bool = False,
+    cut: float = 0.0,
+    init: dict | None = None,
 ) -> tuple[JointNet, float]:
     """JointNet of `shape` trained on jointnet_windows: AdamW, a one-cycle learning rate peaking
-    at lr, `epochs` epochs of batches of BATCH random views (augment, `degraded` or not). Returns
-    the network and the seconds its epochs took (over every run of a resumed training).
+    at lr, `epochs` epochs of batches of BATCH random views (augment, `degraded` or not, a share
+    `cut` cut by an image edge), from the state dict `init` where given (a network to go on
+    training), else from scratch. Returns the network and the seconds its epochs took (over
+    every run of a resumed training).
 
     checkpoint: where the state after every epoch is written (network, optimiser, schedule,
     random state); a run that finds one there, of the same training, resumes after its epoch and
@@ -206,11 +216,13 @@ def train_jointnet(
     torch.manual_seed(seed * 1000 + 11)
     # Module.to takes memory_format (as documented); torch's overloads of it leave it out.
     net = JointNet(shape).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    if init is not None:
+        net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in init.items()})
     opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-4)
     steps = epochs * -(-len(windows) // BATCH)
     schedule = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=steps)
     run = {"epochs": epochs, "lr": lr, "seed": seed, "shape": asdict(shape), "n": len(windows)}
-    run |= {"degraded": degraded}
+    run |= {"degraded": degraded} | ({"cut": cut} if cut else {}) | ({"init": True} if init else {})
     first, seconds = 0, 0.0
     if checkpoint is not None and checkpoint.is_file():
         first, seconds = _resume(checkpoint, run, net, opt, schedule)
@@ -220,7 +232,7 @@ def train_jointnet(
         t0 = time.perf_counter()
         total = 0.0
         for rows in torch.randperm(len(windows)).split(BATCH):
-            views, pts, mask = augment(windows[rows], joints[rows], located[rows], degraded)
+            views, pts, mask = augment(windows[rows], joints[rows], located[rows], degraded, cut)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=CPU_BFLOAT16):
                 logits = net(views.contiguous(memory_format=torch.channels_last))
             loss = jointnet_loss(logits, pts, mask)
@@ -291,6 +303,7 @@ def fit_jointnet(
     params: EstimatorParams,
     cfg: TrainConfig,
     checkpoint: Path | None = None,
+    init: dict | None = None,
 ) -> tuple[dict, float]:
     """The joint network's state dict, from jointnet_windows + train_jointnet (checkpointed to
     `checkpoint`, resumed from it when it holds this training's), its floats stored as float16
@@ -307,6 +320,8 @@ def fit_jointnet(
         cfg.jointnet_shape(),
         checkpoint,
         cfg.jointnet_degraded,
+        cfg.jointnet_edge_cut,
+        init,
     )
     state = {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()}
     return state, windows_seconds + seconds
