@@ -422,7 +422,8 @@ def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
 
 def test_people_all_and_nobody(engine, serving):
     """A canvas of two LSP test people: people=all answers both (boxes matching theirs), the
-    default answers one person, found; a blank image answers nobody, and person_found false."""
+    default answers one of them, found (the search's likeliest proposal alone, whose 2D score
+    need not be the best of all's); a blank image answers nobody, and person_found false."""
     if engine.pipeline is None:
         pytest.skip("the bundled models have no 2D stage")
     from ds3d.boxes import iou
@@ -438,7 +439,8 @@ def test_people_all_and_nobody(engine, serving):
         overlap = iou(np.stack([p.box for p in people]), canvas.boxes())
         assert (overlap.max(0) >= 0.5).all(), overlap
         best = client.estimate(canvas.image)
-        assert best.person_found and best.score >= people[0].score - 1e-6
+        assert best.person_found and best.box is not None
+        assert iou(best.box[None], np.stack([p.box for p in people])).max() >= 0.5
         blank = np.full((480, 640, 3), 128, np.uint8)
         assert client.find_people(blank) == []
         nobody = client.estimate(blank)
