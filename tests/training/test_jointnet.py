@@ -199,3 +199,24 @@ def _loss(net, windows, joints, located):
     mask[:, :13] = False  # the head top alone has a cue
     with torch.no_grad():
         return float(jointnet_loss(net(views), pts, mask))
+
+
+def test_a_training_from_a_network_goes_on_from_its_weights():
+    """init (`ds3d train-jointnet --from-current`): the training starts from the given state,
+    float16 as a model stores it, not from a fresh network; at a vanishing learning rate the
+    convolutions stay where they were."""
+    torch.manual_seed(5)
+    data = (
+        torch.randn(6, 3, WINDOW, WINDOW).half(),
+        torch.rand(6, NUM_JOINTS, 2) * 60 + 58,
+        torch.ones(6, NUM_JOINTS, dtype=torch.bool),
+    )
+    shape = JointNetShape((8, 8, 8), (0, 1, 1))
+    first, _ = jointnet_training.train_jointnet(*data, 2, 3e-3, 0, shape)
+    stored = {k: v.half() if v.is_floating_point() else v for k, v in first.state_dict().items()}
+    later, _ = jointnet_training.train_jointnet(*data, 1, 1e-9, 1, shape, init=stored)
+    fresh, _ = jointnet_training.train_jointnet(*data, 1, 1e-9, 1, shape)
+    weight = "head.weight"
+    start = stored[weight].float()
+    torch.testing.assert_close(later.state_dict()[weight], start, rtol=0, atol=1e-3)
+    assert (fresh.state_dict()[weight] - start).abs().max() > 1e-2
