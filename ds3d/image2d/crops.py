@@ -66,7 +66,7 @@ def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> 
             )
         box = None if bboxes is None else bboxes[i]
         h, w = image.shape[:2]
-        if box is None:  # within the image: reaching past it would double a small image's cost
+        if box is None:
             extent = max(h, w) / params.image_to_extent
             out.append(Crop(image, 0, 0, params.canonical_extent / extent))
             continue

@@ -160,14 +160,20 @@ def test_training_lowers_the_loss_on_a_few_windows():
     assert _loss(net, windows, joints, located) < before - 0.5 and seconds > 0
 
 
-def test_a_resumed_training_ends_where_an_uninterrupted_one_does(tmp_path, monkeypatch):
-    torch.manual_seed(2)
+def _six_windows(seed: int) -> tuple[tuple, JointNetShape]:
+    """Six random training windows, their joints and located flags, and a tiny network's
+    shape: train_jointnet's arguments for a run of seconds."""
+    torch.manual_seed(seed)
     data = (
         torch.rand(6, 3, WINDOW, WINDOW).half(),
         torch.rand(6, NUM_JOINTS, 2) * 60 + 58,
         torch.ones(6, NUM_JOINTS, dtype=torch.bool),
     )
-    shape = JointNetShape((8, 8, 8), (0, 1, 1))
+    return data, JointNetShape((8, 8, 8), (0, 1, 1))
+
+
+def test_a_resumed_training_ends_where_an_uninterrupted_one_does(tmp_path, monkeypatch):
+    data, shape = _six_windows(2)
     whole, _ = jointnet_training.train_jointnet(*data, 3, 3e-3, 0, shape)
     checkpoint = tmp_path / "jointnet.pt"
     jointnet_training.train_jointnet(*data, 1, 3e-3, 0, shape, checkpoint)
@@ -205,13 +211,7 @@ def test_a_training_from_a_network_goes_on_from_its_weights():
     """init (`ds3d train-jointnet --from-current`): the training starts from the given state,
     float16 as a model stores it, not from a fresh network; at a vanishing learning rate the
     convolutions stay where they were."""
-    torch.manual_seed(5)
-    data = (
-        torch.randn(6, 3, WINDOW, WINDOW).half(),
-        torch.rand(6, NUM_JOINTS, 2) * 60 + 58,
-        torch.ones(6, NUM_JOINTS, dtype=torch.bool),
-    )
-    shape = JointNetShape((8, 8, 8), (0, 1, 1))
+    data, shape = _six_windows(5)
     first, _ = jointnet_training.train_jointnet(*data, 2, 3e-3, 0, shape)
     stored = {k: v.half() if v.is_floating_point() else v for k, v in first.state_dict().items()}
     later, _ = jointnet_training.train_jointnet(*data, 1, 1e-9, 1, shape, init=stored)
