@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ds3d.boxes import checked_box, person_boxes, shared_joints, suppress
+from ds3d.boxes import checked_box, joints_on_bones, person_boxes, shared_joints, suppress
 from ds3d.confidence import FILE_NAME as CALIBRATION_FILE
 from ds3d.confidence import JointCalibration
 from ds3d.fit.camera import pinhole, project
@@ -287,11 +287,11 @@ class Pipeline:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Who is answered, settled on the 2D stage's poses so that only they are lifted: per
         image, after non-maximum suppression of its candidates by score (their pose boxes
-        overlapping by SearchParams.overlap, or their poses sharing same_person_joints joints:
-        one person found twice), the best one (people[image] "best") or those found ("all"). A
-        candidate is found when its box was given or it scores min_score[image]
-        (person_scores). Returns the rows of `estimate` answered (N,) int64, image by
-        image, best first, and found (C,) bool."""
+        overlapping by SearchParams.overlap, their poses sharing same_person_joints joints, or
+        one's on_bones_joints joints lying on the other's bones: one person found twice), the
+        best one (people[image] "best") or those found ("all"). A candidate is found when its
+        box was given or it scores min_score[image] (person_scores). Returns the rows of
+        `estimate` answered (N,) int64, image by image, best first, and found (C,) bool."""
         # on the CPU: a few numbers per candidate, settled with NumPy
         score = self.person_scores(estimate)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)
@@ -305,7 +305,9 @@ class Pipeline:
             own = torch.nonzero(image_index == image).view(-1)
             mine = own.numpy()
             shared = shared_joints(poses[mine], search.same_person_radius)
-            same = shared >= search.same_person_joints
+            on_bones = joints_on_bones(poses[mine], search.on_bones_radius)
+            same = (shared >= search.same_person_joints) | (on_bones >= search.on_bones_joints)
+            same |= same.T
             kept = own[suppress(boxes[mine], score[own].numpy(), search.overlap, same)]
             rows.append(kept[:1] if people[image] == "best" else kept[found[kept]])
         return torch.cat(rows), found

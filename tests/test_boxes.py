@@ -4,9 +4,16 @@ suppression of people answered twice."""
 import numpy as np
 import pytest
 
-from ds3d.boxes import checked_box, iou, person_boxes, shared_joints, suppress
+from ds3d.boxes import (
+    checked_box,
+    iou,
+    joints_on_bones,
+    person_boxes,
+    shared_joints,
+    suppress,
+)
 from ds3d.errors import InvalidBox
-from ds3d.skeleton import NUM_JOINTS
+from ds3d.skeleton import LIMBS, NUM_JOINTS
 
 
 def test_a_box_inside_or_overlapping_the_image_is_kept():
@@ -45,3 +52,24 @@ def test_a_partial_pose_of_an_answered_person_is_one_person_a_neighbour_is_not()
     # by box overlap alone every one stays; the partial pose is the surer, so the whole goes
     assert suppress(boxes, scores, 0.5).tolist() == [1, 0, 2]
     assert suppress(boxes, scores, 0.5, shared >= 3).tolist() == [1, 2]
+
+
+def test_a_pose_drawn_along_another_ones_bones_is_one_person_a_neighbour_is_not():
+    """A second reading of one body, its joints along the first's limbs and not at its joints,
+    has every joint on the first's bones; a neighbour beside it, its box overlapping, few."""
+    rng = np.random.default_rng(0)
+    whole = np.stack([rng.uniform(100, 220, NUM_JOINTS), np.linspace(50, 350, NUM_JOINTS)], 1)
+    child, parent = (list(side) for side in zip(*LIMBS, strict=True))
+    along = (whole[child] + whole[parent]) / 2  # the 13 bones' middles, and a quarter of one
+    along = np.concatenate([along, 0.75 * whole[child[:1]] + 0.25 * whole[parent[:1]]])
+    neighbour = whole + np.array([50.0, 0.0])
+    poses = np.stack([whole, along, neighbour])
+    on_bones = joints_on_bones(poses, radius=0.035)
+    assert np.diag(on_bones).tolist() == [NUM_JOINTS] * 3  # a pose's joints end its bones
+    assert on_bones[1, 0] == NUM_JOINTS
+    assert on_bones[2, 0] < 9 and on_bones[0, 2] < 9
+    # the reading along the bones is the surer here, and the whole pose goes with it (by this
+    # rule alone: the boxes' overlap is not asked)
+    boxes, scores = person_boxes(poses), np.array([0.9, 0.95, 0.8])
+    same = (on_bones >= 9) | (on_bones >= 9).T
+    assert suppress(boxes, scores, 1.0, same).tolist() == [1, 2]

@@ -67,6 +67,13 @@ class SearchParams:
         same_person_radius times the larger one's extent of each other (ds3d.boxes.
         shared_joints): a whole pose and a partial one of the same person overlap by less than
         `overlap` but share joints, which people side by side do not.
+    on_bones_radius, on_bones_joints: two people answered are one, too, where at least
+        on_bones_joints of one's joints lie within on_bones_radius times the larger one's
+        extent of the other's bones (ds3d.boxes.joints_on_bones): a second reading of a body
+        found, drawn along its limbs (a leg read as a whole person, a pose turned end to end).
+        People side by side keep their joints off each other's bones: at 0.035 and 9, LSP
+        train's poses beside each other, their boxes overlapping, are one person for no more
+        than 0.6 % of pairs beyond those that same_person_joints joins (docs/tuning.md).
     max_people: at most this many proposals per image go on to the full 2D stage (asked for
         its best person alone, an image sends its best proposal).
     whole_image_cover: where the search proposes at most one person, the whole image goes
@@ -99,6 +106,8 @@ class SearchParams:
     overlap: float = 0.5
     same_person_radius: float = 0.1
     same_person_joints: int = 3
+    on_bones_radius: float = 0.035
+    on_bones_joints: int = 9
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
