@@ -165,6 +165,14 @@ def register(commands, evals, benches) -> None:
     )
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--save", type=Path, help="also write the canvases as PNG into this folder")
+    p.add_argument(
+        "--calibrate-also",
+        action="append",
+        default=[],
+        metavar="SPLIT:START",
+        help="also fit the person score on this split's canvases (drawn alike), with this run's: "
+        "calibration_pooled in the report (e.g. lspet:9000; repeatable)",
+    )
     p.add_argument("--out", type=Path, help="JSON report")
     add_set_option(p, "override a PipelineConfig field (e.g. search.proposal_floor=110)")
     add_model_options(p)
@@ -410,22 +418,16 @@ def eval_people(args) -> int:
 
     pipeline = load_pipeline(args)
     pipeline.config = PipelineConfig(**field_overrides(PipelineConfig, args.set))
-    annotations = people_of(args.split, args.start)
-    canvases = protocol(annotations, args.count, args.seed, args.empty, args.cut)
+
+    def canvases_of(split: str, start: int) -> list:
+        return protocol(people_of(split, start), args.count, args.seed, args.empty, args.cut)
+
+    canvases = canvases_of(args.split, args.start)
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
         for i, canvas in enumerate(canvases):
             cv2.imwrite(str(args.save / f"{i:04d}.png"), canvas.image[..., ::-1])
-    candidates = []  # per canvas: every person answered at min_score 0, (poses, scores, x)
-    with progress(total=len(canvases), desc="people", unit="img") as bar:
-        for first in range(0, len(canvases), args.batch):
-            part = canvases[first : first + args.batch]
-            result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
-            for i in range(len(part)):
-                own = result.rows(torch.nonzero(result.image_index == i).view(-1))
-                poses, initial = own.joints_2d.numpy(), own.joints_2d_initial.numpy()
-                candidates.append((poses, own.score.numpy(), initial))
-            bar.update(len(part))
+    candidates = _people_candidates(pipeline, canvases, args.batch)
     # The speed as a user meets it: a second pass at the default min_score, which lifts only
     # the people answered (min_score 0 lifts every candidate).
     with progress(total=len(canvases), desc="people, timed", unit="img") as bar:
@@ -437,6 +439,7 @@ def eval_people(args) -> int:
         seconds = time.perf_counter() - start
     answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s, _ in candidates]
     typical = pipeline.estimator.mixtures.typical_lengths()
+    search = pipeline.config.search
     report = {
         "split": args.split,
         "start": args.start,
@@ -448,9 +451,20 @@ def eval_people(args) -> int:
         "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
         **score(canvases, answered),
-        "calibration": calibration(canvases, candidates, pipeline.config.search, typical),
+        "calibration": calibration(canvases, candidates, search, typical),
         "by_min_score": {},
     }
+    if args.calibrate_also:
+        pooled, pooled_candidates = list(canvases), list(candidates)
+        for other in args.calibrate_also:
+            split, _, start = other.partition(":")
+            more = canvases_of(split, int(start or 0))
+            pooled += more
+            pooled_candidates += _people_candidates(pipeline, more, args.batch)
+        report["calibration_pooled"] = {
+            "with": args.calibrate_also,
+            **calibration(pooled, pooled_candidates, search, typical),
+        }
     for threshold in (0.1, 0.2, 0.3, 0.5, 0.7):
         kept = [(poses[s >= threshold], s[s >= threshold]) for poses, s, _ in candidates]
         figures = score(canvases, kept)
@@ -462,3 +476,21 @@ def eval_people(args) -> int:
         }
     write_report(report, args.out)
     return 0
+
+
+def _people_candidates(pipeline, canvases: list, batch: int) -> list:
+    """Per canvas, every person the pipeline answers at min_score 0, `batch` canvases at a
+    time: (poses (N, 14, 2) px as answered, scores (N,), the 2D stage's poses (N, 14, 2) px)."""
+    from ds3d.util.progress import progress
+
+    candidates = []
+    with progress(total=len(canvases), desc="people", unit="img") as bar:
+        for first in range(0, len(canvases), batch):
+            part = canvases[first : first + batch]
+            result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
+            for i in range(len(part)):
+                own = result.rows(torch.nonzero(result.image_index == i).view(-1))
+                poses, initial = own.joints_2d.numpy(), own.joints_2d_initial.numpy()
+                candidates.append((poses, own.score.numpy(), initial))
+            bar.update(len(part))
+    return candidates

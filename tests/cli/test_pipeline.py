@@ -159,3 +159,19 @@ def test_predict_on_worker_processes_writes_what_one_process_does(data_dir, tmp_
         pooled = answers["2"][source]
         np.testing.assert_allclose(pooled["joints_2d"], alone["joints_2d"], atol=1e-3)
         np.testing.assert_allclose(pooled["joints_3d"], alone["joints_3d"], atol=1.0)
+
+
+def test_eval_people_fits_the_person_score_on_more_canvases_when_asked(data_dir, tmp_path):
+    """`--calibrate-also` adds another split's canvases, drawn alike, to the person score's fit
+    (calibration_pooled) and leaves the run's own figures and fit as they are."""
+    common = ["--quiet", "eval", "people", "--split", "train", "--start", "700", "--count", "2"]
+    common += ["--threads", "1"]
+    alone, pooled = tmp_path / "alone.json", tmp_path / "pooled.json"
+    assert cli(common + ["--out", str(alone)]) == 0
+    assert cli(common + ["--calibrate-also", "lspet:9000", "--out", str(pooled)]) == 0
+    alone_report, report = json.loads(alone.read_text()), json.loads(pooled.read_text())
+    assert report["calibration"] == alone_report["calibration"]
+    assert report["large"] == alone_report["large"]
+    assert report["calibration_pooled"]["with"] == ["lspet:9000"]
+    assert report["calibration_pooled"]["candidates"] > report["calibration"]["candidates"]
+    assert "calibration_pooled" not in alone_report
