@@ -111,9 +111,9 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -323.64
-    score_width: float = 26.41
-    stretch_weight: float = 2.307
+    score_center: float = -326.2
+    score_width: float = 23.13
+    stretch_weight: float = 2.722
     max_aspect_ratio: float = 8.0
     beyond_edge: float = 0.15
 
@@ -283,7 +283,7 @@ def person_probability(
     psm_score: torch.Tensor, stretch: torch.Tensor, params: SearchParams
 ) -> torch.Tensor:
     """The 2D stage's PSM score (Estimate2D.score) of a person box (B,) and its pose's
-    limb_stretch (B,) -> the probability that it holds a person: a logistic fit on LSP train's
-    held-out images (SearchParams)."""
+    limb_stretch (B,) -> the probability that it holds a person: a logistic fit on the people
+    canvases of LSP train's and LSPet's held-out images (SearchParams; docs/tuning.md)."""
     z = (psm_score - params.score_center) / params.score_width - params.stretch_weight * stretch
     return torch.sigmoid(z)

@@ -165,10 +165,10 @@ def test_eval_people_fits_the_person_score_on_more_canvases_when_asked(data_dir,
     """`--calibrate-also` adds another split's canvases, drawn alike, to the person score's fit
     (calibration_pooled) and leaves the run's own figures and fit as they are."""
     common = ["--quiet", "eval", "people", "--split", "train", "--start", "700", "--count", "2"]
-    common += ["--threads", "1"]
+    common = [*common, "--threads", "1"]
     alone, pooled = tmp_path / "alone.json", tmp_path / "pooled.json"
-    assert cli(common + ["--out", str(alone)]) == 0
-    assert cli(common + ["--calibrate-also", "lspet:9000", "--out", str(pooled)]) == 0
+    assert cli([*common, "--out", str(alone)]) == 0
+    assert cli([*common, "--calibrate-also", "lspet:9000", "--out", str(pooled)]) == 0
     alone_report, report = json.loads(alone.read_text()), json.loads(pooled.read_text())
     assert report["calibration"] == alone_report["calibration"]
     assert report["large"] == alone_report["large"]
