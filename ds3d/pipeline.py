@@ -303,13 +303,16 @@ class Pipeline:
         rows = [torch.zeros(0, dtype=torch.long)]
         for image in image_index.unique().tolist():
             own = torch.nonzero(image_index == image).view(-1)
+            if people[image] == "best":  # the suppression keeps the best first: it alone
+                rows.append(own[score[own].argmax()].view(1))
+                continue
             mine = own.numpy()
             shared = shared_joints(poses[mine], search.same_person_radius)
             on_bones = joints_on_bones(poses[mine], search.on_bones_radius)
             same = (shared >= search.same_person_joints) | (on_bones >= search.on_bones_joints)
             same |= same.T
             kept = own[suppress(boxes[mine], score[own].numpy(), search.overlap, same)]
-            rows.append(kept[:1] if people[image] == "best" else kept[found[kept]])
+            rows.append(kept[found[kept]])
         return torch.cat(rows), found
 
     def person_scores(self, estimate: Estimate2D) -> torch.Tensor:
