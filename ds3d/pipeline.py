@@ -5,8 +5,8 @@
                      person, goes through the 2D stage as its own crop
     2D stage         unaries + PSM on a 6-scale pyramid -> x (ds3d.image2d.estimator)
     who is answered  per image, non-maximum suppression of the crops' poses by score
-                     (ds3d.boxes), the best ("best") or those scoring min_score ("all");
-                     only they go on
+                     (ds3d.boxes), the best ("best") or those scoring min_score ("all"),
+                     then the weak proposals' scoring it apart from them; only they go on
     per iteration t = 1..T (the query is x, then the refined x^ of the previous iteration):
       retrieval      K neighbours per joint set                         (ds3d.lifter)
       projection fit M_s per set (eq:projerr1), warm-started from t - 1 (ds3d.lifter)
@@ -29,15 +29,16 @@ of two joint sets (each a PSM with the same unaries and its own data-driven bina
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ds3d.boxes import checked_box, joints_on_bones, person_boxes, shared_joints, suppress
+from ds3d.boxes import checked_box, iou, joints_on_bones, person_boxes, shared_joints, suppress
 from ds3d.confidence import FILE_NAME as CALIBRATION_FILE
 from ds3d.confidence import JointCalibration
 from ds3d.fit.camera import pinhole, project
@@ -46,7 +47,7 @@ from ds3d.image2d.crops import crop_region
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.result import LOG_EPS, Estimate2D, gather_rows
-from ds3d.image2d.search import Proposals, SearchParams, limb_stretch, person_probability
+from ds3d.image2d.search import Proposals, SearchParams, person_evidence, person_probability
 from ds3d.inputs import focal_length
 from ds3d.lifter import Lifter, LifterConfig, Problems, Query
 from ds3d.refine import RefineParams, refine
@@ -92,13 +93,17 @@ class Candidate:
     answered whatever its score), and whether its scale is known (a search proposal's, found at
     its level) or left to the 2D stage's pyramid; views: the joint network's maps of the image
     that the search computed (Proposals.levels), off which the 2D stage reads the maps that
-    choose the crop's scale."""
+    choose the crop's scale; proposal_score: the search's root score of the proposal it is the
+    crop of (NaN: none, a box given or the whole image); weak: a proposal below proposal_floor
+    (SearchParams.weak_floor), answered only apart from the people answered."""
 
     image: int
     box: np.ndarray
     given: bool
     scale_known: bool
     views: Sequence[ScaledLogits] = ()
+    proposal_score: float = math.nan
+    weak: bool = False
 
 
 def neighbour_scores(estimate: Estimate2D, projected: torch.Tensor) -> torch.Tensor:
@@ -192,7 +197,8 @@ class Pipeline:
         candidates = self.candidates(images, boxes, people)
         search_ms = 1000 * (time.perf_counter() - t_start)
         estimate = self.estimate_2d(images, candidates)
-        answered, found = self.answered(candidates, estimate, people, min_score)
+        evidence = self.person_evidence(estimate, candidates)
+        answered, found = self.answered(candidates, estimate, evidence, people, min_score)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)[answered]
         # the camera that places the people: the intrinsics given, or one per image of its size
         if intrinsics is not None:
@@ -202,7 +208,9 @@ class Pipeline:
         else:
             sizes = [(i, *images[i].shape[1::-1]) for i in image_index.tolist()]
             camera = torch.stack([pinhole(w, h, focal[i]) for i, w, h in sizes]) if sizes else None
-        result = self.lift_estimate(estimate.rows(answered), intrinsics, iterations, camera)
+        result = self.lift_estimate(
+            estimate.rows(answered), intrinsics, iterations, camera, evidence[answered]
+        )
         assumed = [intrinsics is None and focal[i] is None for i in image_index.tolist()]
         result.focal_assumed = torch.tensor(assumed, dtype=torch.bool)
         result.image_index = image_index
@@ -229,28 +237,42 @@ class Pipeline:
         out = [Candidate(i, box, True, False) for i, box in enumerate(boxes) if box is not None]
         for i, found in zip(searched, proposals, strict=True):
             whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
-            proposed = self._proposal_boxes(found, self.config.search.max_people)
+            proposed = self._proposals_on(found)
+            strong = [c.box for c in proposed if not c.weak]
             # The whole image is one person's crop: where the search found several people,
             # its one pose would join them.
-            alone = len(proposed) <= 1
+            alone = len(strong) <= 1
             if people is not None and people[i] == "best":
                 proposed = proposed[:1]
-            out += [Candidate(i, box, False, True) for box in proposed]
-            if alone and not any(self._covers(box, images[i]) for box in proposed):
+            out += [replace(c, image=i) for c in proposed]
+            if alone and not any(self._covers(box, images[i]) for box in strong):
                 out.append(Candidate(i, whole, False, False, found.levels))
         return out
 
-    def _proposal_boxes(self, proposals: Proposals, most: int) -> list[np.ndarray]:
-        """The boxes of an image's proposals that go on to the 2D stage (the box of the
-        proposal's joints, so that the crop's base scale is the proposal's): the best `most`
-        of those scoring proposal_floor, and always the best, of those whose box has an area:
-        a pose whose joints all share one column or row (a PSM collapsed against the edge of a
-        level's maps) is nobody, and a crop needs an area."""
-        keep = proposals.scores >= self.config.search.proposal_floor
-        keep[:1] = True
-        poses = proposals.poses[keep]
-        boxes = np.concatenate([poses.min(1), poses.max(1)], 1)
-        return [box for box in boxes if box[2] > box[0] and box[3] > box[1]][:most]
+    def _proposals_on(self, proposals: Proposals) -> list[Candidate]:
+        """The candidates (of image 0) of an image's proposals that go on to the 2D stage, best
+        first, each the box of the proposal's joints (so that the crop's base scale is the
+        proposal's): the best max_people of those scoring proposal_floor, and always the best;
+        then, weak, the best weak_people of the others scoring weak_floor. Only proposals whose
+        box has an area: a pose whose joints all share one column or row (a PSM collapsed
+        against the edge of a level's maps) is nobody, and a crop needs an area."""
+        search, scores = self.config.search, proposals.scores
+        boxes = np.concatenate([proposals.poses.min(1), proposals.poses.max(1)], 1)
+        area = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        strong = scores >= search.proposal_floor
+        strong[:1] = True
+        weak = ~strong & (scores >= search.weak_floor)
+        chosen = [
+            (k, kind)
+            for kind, among, most in (
+                (False, strong, search.max_people),
+                (True, weak, search.weak_people),
+            )
+            for k in np.nonzero(among & area)[0][:most]
+        ]
+        return [
+            Candidate(0, boxes[k], False, True, (), float(scores[k]), kind) for k, kind in chosen
+        ]
 
     def _covers(self, box: np.ndarray, image: np.ndarray) -> bool:
         """Whether the crop around a person box (crops.crop_region) holds at least
@@ -282,6 +304,7 @@ class Pipeline:
         self,
         candidates: list[Candidate],
         estimate: Estimate2D,
+        evidence: torch.Tensor,
         people: list[str],
         min_score: list[float],
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -289,11 +312,15 @@ class Pipeline:
         image, after non-maximum suppression of its candidates by score (their pose boxes
         overlapping by SearchParams.overlap, their poses sharing same_person_joints joints, or
         one's on_bones_joints joints lying on the other's bones: one person found twice), the
-        best one (people[image] "best") or those found ("all"). A candidate is found when its
-        box was given or it scores min_score[image] (person_scores). Returns the rows of
-        `estimate` answered (N,) int64, image by image, best first, and found (C,) bool."""
+        best one (people[image] "best") or those found ("all"); then, best score first, the weak
+        candidates found whose box overlaps no answered one's by more than weak_overlap (IoU):
+        a weak proposal is a person the search was unsure of, answered where nobody found
+        stands, not as a second reading of them. A candidate is found when its box was given
+        or it scores min_score[image] (person_probability of its evidence, (C, 3)
+        person_evidence). Returns the rows of `estimate` answered (N,) int64, image by image,
+        best first, and found (C,) bool."""
         # on the CPU: a few numbers per candidate, settled with NumPy
-        score = self.person_scores(estimate)
+        score = person_probability(evidence, self.config.search).float()
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)
         given = torch.tensor([c.given for c in candidates])
         found = given | (score >= torch.tensor(min_score, dtype=score.dtype)[image_index])
@@ -306,31 +333,49 @@ class Pipeline:
             if people[image] == "best":  # the suppression keeps the best first: it alone
                 rows.append(own[score[own].argmax()].view(1))
                 continue
-            mine = own.numpy()
-            shared = shared_joints(poses[mine], search.same_person_radius)
-            on_bones = joints_on_bones(poses[mine], search.on_bones_radius)
+            weak = torch.tensor([candidates[k].weak for k in own.tolist()])
+            strong = own[~weak].numpy()
+            shared = shared_joints(poses[strong], search.same_person_radius)
+            on_bones = joints_on_bones(poses[strong], search.on_bones_radius)
             same = (shared >= search.same_person_joints) | (on_bones >= search.on_bones_joints)
             same |= same.T
-            kept = own[suppress(boxes[mine], score[own].numpy(), search.overlap, same)]
-            rows.append(kept[found[kept]])
+            kept = strong[suppress(boxes[strong], score[strong].numpy(), search.overlap, same)]
+            answered = kept[found[kept].numpy()].tolist()
+            for k in own[weak][score[own[weak]].argsort(descending=True)].tolist():
+                apart = not answered or iou(boxes[k], boxes[answered]).max() <= search.weak_overlap
+                if found[k] and apart:
+                    answered.append(k)
+            rows.append(torch.tensor(answered, dtype=torch.long))
         return torch.cat(rows), found
 
-    def person_scores(self, estimate: Estimate2D) -> torch.Tensor:
-        """(B,) on the CPU: the probability that each of the 2D stage's B poses is a person
-        (person_probability, from its PSM score and its limbs' proportions against the PSM's
-        typical ones)."""
+    def person_evidence(
+        self, estimate: Estimate2D, candidates: list[Candidate] | None = None
+    ) -> torch.Tensor:
+        """(B, 3) on the CPU: what the person score of each of the 2D stage's B poses weighs
+        (ds3d.image2d.search.person_evidence: its PSM score, its limbs' proportions against the
+        PSM's typical ones, the root score of its candidate's proposal; None: no candidate was
+        a proposal)."""
         typical = self.estimator.mixtures.typical_lengths().float().cpu()
-        stretch = limb_stretch(estimate.joints_2d.float().cpu(), typical)
-        return person_probability(estimate.score.float().cpu(), stretch, self.config.search)
+        root = torch.full((len(estimate.score),), math.nan)
+        if candidates is not None:
+            root = torch.tensor([c.proposal_score for c in candidates], dtype=torch.float64)
+        psm, joints = estimate.score.float().cpu(), estimate.joints_2d.float().cpu()
+        return person_evidence(psm, joints, typical, root, self.config.search)
 
     @torch.inference_mode()
     def lift_estimate(
-        self, estimate: Estimate2D, intrinsics=None, iterations: int | None = None, camera=None
+        self,
+        estimate: Estimate2D,
+        intrinsics=None,
+        iterations: int | None = None,
+        camera=None,
+        evidence: torch.Tensor | None = None,
     ) -> PipelineResult:
         """Everything after the 2D stage, on its result for B people (arguments as estimate):
         lets a caller run several configurations on one 2D estimate. camera: optional (B, 3, 3),
         the intrinsics of the camera in whose coordinates to place the people (estimate passes
-        those given, or a camera of each image's size); without, root_position is NaN."""
+        those given, or a camera of each image's size); without, root_position is NaN.
+        evidence: (B, 3) their person_evidence (None: of poses that no proposal found)."""
         cfg = self.config
         if iterations is not None:
             cfg = dataclasses.replace(cfg, iterations=iterations)
@@ -373,7 +418,8 @@ class Pipeline:
         elapsed = time.perf_counter() - t_start + estimate.timings.get("total", 0.0)
         timings["total"] = 1000 * elapsed
         joints_2d = x.cpu()
-        score = self.person_scores(estimate)
+        if evidence is None:
+            evidence = self.person_evidence(estimate)
         return PipelineResult(
             joints_2d=joints_2d,
             joints_2d_initial=first.joints_2d.cpu(),
@@ -390,7 +436,8 @@ class Pipeline:
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
             image_index=torch.arange(len(joints_2d)),
             box=torch.from_numpy(person_boxes(joints_2d.numpy())).float(),
-            score=score,
+            score=person_probability(evidence, cfg.search).float(),
+            score_evidence=evidence.float(),
             person_found=torch.ones(len(joints_2d), dtype=torch.bool),
         )
 

@@ -71,6 +71,9 @@ class PipelineResult:
     box: (N, 4) float32 x0, y0, x1, y1 px, the box of the person's joints (ds3d.boxes).
     score: (N,) float32 in [0, 1], the probability that it is a person
         (ds3d.image2d.search.person_probability).
+    score_evidence: (N, 3) float32, what the score weighs (ds3d.image2d.search.person_evidence):
+        the 2D stage's PSM score, the pose's limb stretch, the search's root score of its
+        proposal (SearchParams.proposal_floor where it had none).
     person_found: (N,) bool, the score at least min_score (with a box given: True, the caller
         said where the person is). With people="best" an image where nobody scores min_score
         still answers its likeliest pose, flagged False.
@@ -117,6 +120,7 @@ class PipelineResult:
     image_index: torch.Tensor
     box: torch.Tensor
     score: torch.Tensor
+    score_evidence: torch.Tensor
     person_found: torch.Tensor
 
     @classmethod
@@ -140,6 +144,7 @@ class PipelineResult:
             image_index=torch.zeros(n, dtype=torch.long),
             box=torch.zeros(n, 4),
             score=torch.zeros(n),
+            score_evidence=torch.zeros(n, 3),
             person_found=torch.zeros(n, dtype=torch.bool),
         )
 

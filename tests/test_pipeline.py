@@ -19,7 +19,7 @@ from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.image2d.search import Proposals
 from ds3d.io.images import read_image
 from ds3d.lifter import LifterConfig
-from ds3d.pipeline import Pipeline, PipelineConfig, neighbour_scores
+from ds3d.pipeline import Candidate, Pipeline, PipelineConfig, neighbour_scores
 from ds3d.refine import cells_to_image, image_to_cells
 from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
 from ds3d.util.paths import MODELS_DIR
@@ -314,6 +314,47 @@ def test_an_image_asked_for_its_best_person_has_its_best_proposal_alone_estimate
     alone = Proposals(person[None], np.array([300.0], np.float32), [])
     whole = [0.0, 0.0, 640.0, 480.0]
     assert [c.box.tolist() for c in _candidates(alone, image, "best")] == [every[0], whole]
+
+
+def test_proposals_below_the_floor_go_on_as_weak_candidates_after_the_others():
+    """The best max_people proposals scoring proposal_floor (and always the best), then the
+    best weak_people of those scoring weak_floor, flagged weak, with their root scores."""
+    image = np.zeros((480, 640, 3), np.uint8)
+    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
+    poses = np.stack([person + 100.0 * k for k in range(4)])
+    found = Proposals(poses, np.array([300.0, 150.0, 90.0, 50.0], np.float32), [])
+    chosen = _candidates(found, image)
+    assert [(c.proposal_score, c.weak) for c in chosen] == [
+        (300.0, False),
+        (150.0, False),
+        (90.0, True),
+    ]
+    assert [c.box.tolist() for c in chosen] == [
+        [10.0 + 100 * k, 5.0 + 100 * k, 60.0 + 100 * k, 90.0 + 100 * k] for k in range(3)
+    ]
+
+
+def test_a_weak_candidate_is_answered_only_apart_from_the_people_answered():
+    """A weak proposal (below proposal_floor) found near an answered person is mostly a second
+    reading of them: it is answered only where its box overlaps nobody answered by more than
+    weak_overlap, and like any other only where it scores min_score."""
+    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
+    shifts = [0.0, 20.0, 200.0, 400.0]  # a strong person; weak: beside them, apart, apart
+    joints = torch.from_numpy(np.stack([person + s for s in shifts])).float()
+    candidates = [
+        Candidate(0, np.zeros(4), False, True, (), score, weak)
+        for score, weak in ((300.0, False), (90.0, True), (90.0, True), (90.0, True))
+    ]
+    sure, unsure = -200.0, -500.0  # PSM scores: a person, nobody
+    psm = torch.tensor([sure, sure, sure, unsure], dtype=torch.float64)
+    evidence = torch.stack(
+        [psm, torch.zeros(4, dtype=torch.float64), torch.full((4,), 90.0, dtype=torch.float64)], -1
+    )
+    evidence[0, 2] = 300.0
+    pipeline = Pipeline(SimpleNamespace(params=EstimatorParams()), None)  # type: ignore[arg-type]
+    estimate = SimpleNamespace(joints_2d=joints)
+    rows, found = pipeline.answered(candidates, estimate, evidence, ["all"], [0.5])  # type: ignore[arg-type]
+    assert rows.tolist() == [0, 2] and found.tolist() == [True, True, True, False]
 
 
 def _candidates(found: Proposals, image: np.ndarray, people: str = "all"):

@@ -438,7 +438,6 @@ def eval_people(args) -> int:
             bar.update(len(part))
         seconds = time.perf_counter() - start
     answered = [(poses[s >= MIN_SCORE], s[s >= MIN_SCORE]) for poses, s, _ in candidates]
-    typical = pipeline.estimator.mixtures.typical_lengths()
     search = pipeline.config.search
     report = {
         "split": args.split,
@@ -451,7 +450,7 @@ def eval_people(args) -> int:
         "min_score": MIN_SCORE,
         "images_per_s": round(len(canvases) / seconds, 2),
         **score(canvases, answered),
-        "calibration": calibration(canvases, candidates, search, typical),
+        "calibration": calibration(canvases, candidates, search),
         "by_min_score": {},
     }
     if args.calibrate_also:
@@ -463,7 +462,7 @@ def eval_people(args) -> int:
             pooled_candidates += _people_candidates(pipeline, more, args.batch)
         report["calibration_pooled"] = {
             "with": args.calibrate_also,
-            **calibration(pooled, pooled_candidates, search, typical),
+            **calibration(pooled, pooled_candidates, search),
         }
     for threshold in (0.1, 0.2, 0.3, 0.5, 0.7):
         kept = [(poses[s >= threshold], s[s >= threshold]) for poses, s, _ in candidates]
@@ -480,7 +479,7 @@ def eval_people(args) -> int:
 
 def _people_candidates(pipeline, canvases: list, batch: int) -> list:
     """Per canvas, every person the pipeline answers at min_score 0, `batch` canvases at a
-    time: (poses (N, 14, 2) px as answered, scores (N,), the 2D stage's poses (N, 14, 2) px)."""
+    time: (poses (N, 14, 2) px as answered, scores (N,), their person evidence (N, 3))."""
     from ds3d.util.progress import progress
 
     candidates = []
@@ -490,7 +489,7 @@ def _people_candidates(pipeline, canvases: list, batch: int) -> list:
             result = pipeline.estimate([c.image for c in part], people="all", min_score=0.0)
             for i in range(len(part)):
                 own = result.rows(torch.nonzero(result.image_index == i).view(-1))
-                poses, initial = own.joints_2d.numpy(), own.joints_2d_initial.numpy()
-                candidates.append((poses, own.score.numpy(), initial))
+                evidence = own.score_evidence.numpy()
+                candidates.append((own.joints_2d.numpy(), own.score.numpy(), evidence))
             bar.update(len(part))
     return candidates

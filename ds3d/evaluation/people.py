@@ -34,7 +34,6 @@ import torch
 from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import PoseAnnotations, load_lsp, load_lspet
 from ds3d.evaluation.metrics import expected_calibration_error, pck, reliability
-from ds3d.image2d.search import limb_stretch
 from ds3d.io.images import read_image
 
 CANVAS = (640, 480)  # width, height px
@@ -317,41 +316,38 @@ def score(canvases: list[Canvas], predictions: list[tuple[np.ndarray, np.ndarray
     return report
 
 
-def calibration(canvases: list[Canvas], candidates, search, typical: torch.Tensor) -> dict:
+def calibration(canvases: list[Canvas], candidates, search) -> dict:
     """The person_probability (ds3d.image2d.search) that these candidates fit: a logistic
-    regression of "matches a person" (match) on their PSM scores and limb_stretch, the PSM
-    scores recovered from the scores (probabilities under `search`'s score_center, score_width
-    and stretch_weight). candidates: per canvas, every pose answered at min_score 0: (poses
-    (N, 14, 2) px as answered, scores (N,), the 2D stage's poses (N, 14, 2) px, whose
-    limb_stretch against `typical` (13,) the scores used). Returns the fitted score_center,
-    score_width and stretch_weight (tune them on training canvases only), and how well the
-    scores as answered say how often a candidate is a person: their expected calibration error
-    and reliability bins (ds3d.evaluation.metrics)."""
+    regression of "matches a person" (match) on their person_evidence (PSM score, limb
+    stretch, proposal root score). candidates: per canvas, every pose answered at min_score 0:
+    (poses (N, 14, 2) px as answered, scores (N,) as answered under `search`, evidence (N, 3)).
+    Returns the fitted score_center, score_width, stretch_weight and root_weight (relative to
+    search.proposal_floor; tune them on training canvases only), and how well the scores as
+    answered say how often a candidate is a person: their expected calibration error and
+    reliability bins (ds3d.evaluation.metrics)."""
     features, matched, answered = [], [], []
-    for canvas, (poses, scores, initial) in zip(canvases, candidates, strict=True):
-        scores = np.clip(np.asarray(scores, np.float64), 1e-12, 1 - 1e-12)
+    for canvas, (poses, scores, evidence) in zip(canvases, candidates, strict=True):
+        scores = np.asarray(scores, np.float64)
         boxes = canvas.within(person_boxes(poses))
         found = match(boxes, scores, canvas.boxes()) if len(poses) else []
         label = np.zeros(len(poses))
         label[[p for p in found if p >= 0]] = 1
-        pose = torch.as_tensor(np.asarray(initial, np.float32).reshape(-1, 14, 2))
-        stretch = limb_stretch(pose, typical.float().cpu()).double().numpy()
-        logit = np.log(scores / (1 - scores)) + search.stretch_weight * stretch
-        features.append(np.stack([search.score_center + search.score_width * logit, stretch], 1))
+        features.append(np.asarray(evidence, np.float64).reshape(-1, 3))
         matched.append(label)
         answered.append(scores)
     x, y = np.concatenate(features), np.concatenate(matched)
     said, person = torch.from_numpy(np.concatenate(answered)), torch.from_numpy(y > 0)
-    # sigmoid(a (psm - mean) / sd + c stretch + b): a convex fit (Newton's method) of three
+    # sigmoid(a (psm - mean) / sd + c stretch + r (root - floor) + b): convex (Newton's method)
     mean, sd = x[:, 0].mean(), max(x[:, 0].std(), 1e-9)
-    design = np.stack([(x[:, 0] - mean) / sd, x[:, 1], np.ones(len(y))], 1)
-    theta = np.array([1.0, 0.0, 0.0])
+    root = (x[:, 2] - search.proposal_floor) / 100  # about the PSM score's units, for Newton
+    design = np.stack([(x[:, 0] - mean) / sd, x[:, 1], root, np.ones(len(y))], 1)
+    theta = np.array([1.0, 0.0, 0.0, 0.0])
     for _ in range(50):
         p = 1 / (1 + np.exp(-design @ theta))
         w = p * (1 - p) + 1e-9
-        hessian = design.T @ (w[:, None] * design) + 1e-6 * np.eye(3)
+        hessian = design.T @ (w[:, None] * design) + 1e-6 * np.eye(4)
         theta = theta - np.linalg.solve(hessian, design.T @ (p - y))
-    a, c, b = theta
+    a, c, r, b = theta
     width = sd / a
     return {
         "candidates": len(y),
@@ -359,6 +355,7 @@ def calibration(canvases: list[Canvas], candidates, search, typical: torch.Tenso
         "score_center": round(float(mean - b * width), 2),
         "score_width": round(float(width), 2),
         "stretch_weight": round(float(-c), 3),
+        "root_weight": round(float(r / 100), 5),
         "ece": round(expected_calibration_error(said, person), 4),
         "reliability": reliability(said, person),
     }

@@ -10,7 +10,9 @@ logits score each person on its own, comparably across images and levels. The pr
 levels then go through non-maximum suppression (ds3d.boxes.suppress) on their pose's boxes.
 
 The proposals only say where and how large people are: each is then estimated in its box by
-the full 2D stage (PoseEstimator2D.estimate), whose PSM score and limbs' proportions
+the full 2D stage (PoseEstimator2D.estimate), those of a root score below proposal_floor
+(weak) too, a few, to be answered only apart from the others (ds3d.pipeline). Its PSM score,
+its limbs' proportions and the proposal's root score are the evidence (person_evidence) that
 `person_probability` maps to the probability that the box holds a person.
 """
 
@@ -74,15 +76,22 @@ class SearchParams:
         People side by side keep their joints off each other's bones: at 0.035 and 9, LSP
         train's poses beside each other, their boxes overlapping, are one person for no more
         than 0.6 % of pairs beyond those that same_person_joints joins (docs/tuning.md).
-    max_people: at most this many proposals per image go on to the full 2D stage (asked for
-        its best person alone, an image sends its best proposal).
+    max_people: at most this many proposals per image scoring proposal_floor go on to the
+        full 2D stage (asked for its best person alone, an image sends its best proposal).
     whole_image_cover: where the search proposes at most one person, the whole image goes
         through the 2D stage as one more crop (it finds people the image's edge cuts) unless
         the proposal's crop (crops.crop_region) holds at least this fraction of it: in a photo
         that is a tight crop around its person (LSP's) both are that person, estimated twice.
-    proposal_floor: proposals whose root score is below it do not (the best one always does).
-    score_center, score_width, stretch_weight: person_probability = sigmoid((psm score -
-        center) / width - stretch_weight * limb_stretch).
+    proposal_floor: proposals whose root score is below it do not (the best one always does),
+        unless weak:
+    weak_floor, weak_people, weak_overlap: the best weak_people of the proposals scoring
+        weak_floor to proposal_floor go on to the 2D stage too, and are answered only where
+        their pose's box overlaps nobody answered by more than weak_overlap (IoU): on a coarse
+        level's maps large people often score below the floor, while the crop poses them well;
+        a weak proposal near a person found is mostly a second reading of them.
+    score_center, score_width, stretch_weight, root_weight: person_probability =
+        sigmoid((psm score - center) / width - stretch_weight * limb_stretch + root_weight *
+        (root score - proposal_floor)), the root score the proposal's (person_evidence).
     beyond_edge: how far each level reaches past the image's edges, as a fraction of the
         person extent it seeks: zeros there to the joint network, which learnt where the joints
         a photo cuts off lie (ds3d.training.jointnet.edge_cut), so that a person the frame cuts
@@ -111,9 +120,13 @@ class SearchParams:
     max_people: int = 8
     whole_image_cover: float = 0.9
     proposal_floor: float = 120.0
-    score_center: float = -326.2
-    score_width: float = 23.13
-    stretch_weight: float = 2.722
+    weak_floor: float = 60.0
+    weak_people: int = 4
+    weak_overlap: float = 0.05
+    score_center: float = -304.45
+    score_width: float = 24.17
+    stretch_weight: float = 1.478
+    root_weight: float = 0.02575
     max_aspect_ratio: float = 8.0
     beyond_edge: float = 0.15
 
@@ -279,11 +292,29 @@ def limb_stretch(joints_2d: torch.Tensor, typical: torch.Tensor) -> torch.Tensor
     return (relative.amax(dim=-1) / median).clamp_min(1.0).log()
 
 
-def person_probability(
-    psm_score: torch.Tensor, stretch: torch.Tensor, params: SearchParams
+def person_evidence(
+    psm_score: torch.Tensor,
+    joints_2d: torch.Tensor,
+    typical: torch.Tensor,
+    root_score: torch.Tensor,
+    params: SearchParams,
 ) -> torch.Tensor:
-    """The 2D stage's PSM score (Estimate2D.score) of a person box (B,) and its pose's
-    limb_stretch (B,) -> the probability that it holds a person: a logistic fit on the people
-    canvases of LSP train's and LSPet's held-out images (SearchParams; docs/tuning.md)."""
-    z = (psm_score - params.score_center) / params.score_width - params.stretch_weight * stretch
-    return torch.sigmoid(z)
+    """What the person score weighs, for B crops: the 2D stage's PSM score of its pose
+    (Estimate2D.score) (B,), the pose's limb_stretch (joints_2d (B, 14, 2) px against the
+    limbs' typical lengths (13,)), and the root score (B,) of the search's proposal that the
+    crop is of (Proposals.scores; NaN where none is: a box given or the whole image, which
+    count as proposals at proposal_floor) -> (B, 3) float64 (PSM score, stretch, root score).
+    The root score says how the person stands out on their level of the whole image; the PSM
+    score says how the pose fits its crop, where it may borrow a neighbour's limbs."""
+    stretch = limb_stretch(joints_2d.float(), typical.float())
+    root = torch.nan_to_num(root_score.double(), nan=params.proposal_floor)
+    return torch.stack([psm_score.double(), stretch.double(), root], -1)
+
+
+def person_probability(evidence: torch.Tensor, params: SearchParams) -> torch.Tensor:
+    """(B, 3) person_evidence -> (B,) the probability that each crop holds a person: a logistic
+    fit on the people canvases of LSP train's and LSPet's held-out images (SearchParams;
+    docs/tuning.md)."""
+    psm, stretch, root = evidence.unbind(-1)
+    z = (psm - params.score_center) / params.score_width - params.stretch_weight * stretch
+    return torch.sigmoid(z + params.root_weight * (root - params.proposal_floor))

@@ -9,6 +9,7 @@ from ds3d.image2d.search import (
     level_extents,
     limb_stretch,
     local_peaks,
+    person_evidence,
     person_probability,
 )
 from ds3d.skeleton import LIMBS, NUM_JOINTS
@@ -82,11 +83,23 @@ def test_limbs_out_of_proportion_stretch_a_pose_and_lower_its_probability():
     torch.testing.assert_close(stretch[[0, 2]], torch.zeros(2), atol=1e-5, rtol=0)
     torch.testing.assert_close(stretch[1], torch.tensor(float(np.log(3))), atol=1e-5, rtol=0)
     assert limb_stretch(torch.zeros(1, NUM_JOINTS, 2), typical).item() == 0  # no limbs at all
-    params = SearchParams()
-    same = torch.full((2,), -250.0)
-    probability = person_probability(same, stretch[:2], params)
-    assert probability[1] < probability[0]
-    assert (person_probability(same + 20, stretch[:2], params) > probability).all()
+    params = SearchParams(root_weight=0.02)
+    poses, same, unproposed = (
+        torch.stack([pose, drawn_out]),
+        torch.full((2,), -250.0),
+        torch.full((2,), torch.nan),
+    )
+
+    def probability(psm: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        return person_probability(person_evidence(psm, poses, typical, root, params), params)
+
+    drawn_out_lower = probability(same, unproposed)
+    assert drawn_out_lower[1] < drawn_out_lower[0]
+    assert (probability(same + 20, unproposed) > drawn_out_lower).all()
+    # a box no proposal found counts as one at the floor; a person standing out more is likelier
+    at_floor = torch.full((2,), params.proposal_floor)
+    torch.testing.assert_close(probability(same, at_floor), drawn_out_lower)
+    assert (probability(same, at_floor + 50) > drawn_out_lower).all()
 
 
 def _depth(joint: int) -> int:
