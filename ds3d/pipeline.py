@@ -59,10 +59,10 @@ from ds3d.util.timing import stage_timer
 STEPS_2D = ("features", "traversal", "jointnet", "psm")  # the steps of Estimate2D.timings, s
 PEOPLE = ("best", "all")  # Pipeline.estimate: the best person of each image, or every one
 # Pipeline.estimate's default: people less likely than this are not answered. The score is a
-# calibrated probability (expected calibration error 0.037 on LSP train's held-out canvases,
+# calibrated probability (expected calibration error 0.016 on LSP train's held-out canvases,
 # `ds3d eval people --split train --start 700`, 0.034 on their harder kind, `--empty 0.2 --cut
-# 0.3`): answered where more likely a person than not. There 96.7 % of the answers were people,
-# at 89.7 % recall (at 0.2, 94.2 % of the answers were people).
+# 0.3`): answered where more likely a person than not. There 96.6 % of the answers were people,
+# at 94.1 % recall (at 0.2, 95.2 % of the answers were people).
 MIN_SCORE = 0.5
 
 
