@@ -345,6 +345,7 @@ class Pipeline:
                 apart = not answered or iou(boxes[k], boxes[answered]).max() <= search.weak_overlap
                 if found[k] and apart:
                     answered.append(k)
+            answered.sort(key=lambda k: -float(score[k]))
             rows.append(torch.tensor(answered, dtype=torch.long))
         return torch.cat(rows), found
 
