@@ -173,6 +173,7 @@ def register(commands, evals, benches) -> None:
         help="also fit the person score on this split's canvases (drawn alike), with this run's: "
         "calibration_pooled in the report (e.g. lspet:9000; repeatable)",
     )
+    p.add_argument("--plot", type=Path, help="also the person score's reliability diagram, a PNG")
     p.add_argument("--out", type=Path, help="JSON report")
     add_set_option(p, "override a PipelineConfig field (e.g. search.proposal_floor=110)")
     add_model_options(p)
@@ -473,6 +474,17 @@ def eval_people(args) -> int:
             "large": {name: round(v, 4) for name, v in figures["large"].items()},
             "answers_on_empty_canvases": figures["answers_on_empty_canvases"],
         }
+    if args.plot is not None:
+        from ds3d.viz.reliability import plot_reliability
+
+        fit = report["calibration"]
+        plot_reliability(
+            {"person score": fit["reliability"]},
+            args.plot,
+            f"people canvases, {args.split} from {args.start}: {fit['candidates']} answers at "
+            f"min_score 0, ECE {fit['ece']:.3f}",
+            right="fraction that are people",
+        )
     write_report(report, args.out)
     return 0
 

@@ -6,9 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def plot_reliability(curves: dict[str, list[dict]], path: Path, title: str = "") -> None:
-    """One line per labelled set of reliability rows (fraction right against mean confidence,
-    each bin a marker sized by its count) beside the diagonal of perfect calibration; a PNG."""
+def plot_reliability(
+    curves: dict[str, list[dict]],
+    path: Path,
+    title: str = "",
+    right: str = "fraction of joints right",
+) -> None:
+    """One line per labelled set of reliability rows (the fraction right, named `right`, against
+    the mean confidence, each bin a marker sized by its count) beside the diagonal of perfect
+    calibration; a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,7 +28,7 @@ def plot_reliability(curves: dict[str, list[dict]], path: Path, title: str = "")
         x, y = [r["confidence"] for r in rows], [r["accuracy"] for r in rows]
         (line,) = ax.plot(x, y, lw=1, label=label)
         ax.scatter(x, y, s=sizes, color=line.get_color())
-    ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="confidence", ylabel="fraction of joints right")
+    ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="confidence", ylabel=right)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()

@@ -163,11 +163,13 @@ def test_predict_on_worker_processes_writes_what_one_process_does(data_dir, tmp_
 
 def test_eval_people_fits_the_person_score_on_more_canvases_when_asked(data_dir, tmp_path):
     """`--calibrate-also` adds another split's canvases, drawn alike, to the person score's fit
-    (calibration_pooled) and leaves the run's own figures and fit as they are."""
+    (calibration_pooled) and leaves the run's own figures and fit as they are; `--plot` draws
+    the score's reliability diagram."""
     common = ["--quiet", "eval", "people", "--split", "train", "--start", "700", "--count", "2"]
     common = [*common, "--threads", "1"]
-    alone, pooled = tmp_path / "alone.json", tmp_path / "pooled.json"
-    assert cli([*common, "--out", str(alone)]) == 0
+    alone, pooled, plot = tmp_path / "alone.json", tmp_path / "pooled.json", tmp_path / "r.png"
+    assert cli([*common, "--plot", str(plot), "--out", str(alone)]) == 0
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert cli([*common, "--calibrate-also", "lspet:9000", "--out", str(pooled)]) == 0
     alone_report, report = json.loads(alone.read_text()), json.loads(pooled.read_text())
     assert report["calibration"] == alone_report["calibration"]
