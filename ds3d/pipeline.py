@@ -32,7 +32,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -237,20 +237,20 @@ class Pipeline:
         out = [Candidate(i, box, True, False) for i, box in enumerate(boxes) if box is not None]
         for i, found in zip(searched, proposals, strict=True):
             whole = np.array([0, 0, images[i].shape[1], images[i].shape[0]], np.float32)
-            proposed = self._proposals_on(found)
+            proposed = self._proposals_on(i, found)
             strong = [c.box for c in proposed if not c.weak]
             # The whole image is one person's crop: where the search found several people,
             # its one pose would join them.
             alone = len(strong) <= 1
             if people is not None and people[i] == "best":
                 proposed = proposed[:1]
-            out += [replace(c, image=i) for c in proposed]
+            out += proposed
             if alone and not any(self._covers(box, images[i]) for box in strong):
                 out.append(Candidate(i, whole, False, False, found.levels))
         return out
 
-    def _proposals_on(self, proposals: Proposals) -> list[Candidate]:
-        """The candidates (of image 0) of an image's proposals that go on to the 2D stage, best
+    def _proposals_on(self, image: int, proposals: Proposals) -> list[Candidate]:
+        """The candidates of image `image`'s proposals that go on to the 2D stage, best
         first, each the box of the proposal's joints (so that the crop's base scale is the
         proposal's): the best max_people of those scoring proposal_floor, and always the best;
         then, weak, the best weak_people of the others scoring weak_floor. Only proposals whose
@@ -271,7 +271,8 @@ class Pipeline:
             for k in np.nonzero(among & area)[0][:most]
         ]
         return [
-            Candidate(0, boxes[k], False, True, (), float(scores[k]), kind) for k, kind in chosen
+            Candidate(image, boxes[k], False, True, (), float(scores[k]), kind)
+            for k, kind in chosen
         ]
 
     def _covers(self, box: np.ndarray, image: np.ndarray) -> bool:
