@@ -2,7 +2,7 @@
 # no CUDA torch is pulled in), the locked dependencies (requirements/service.txt: the runtime and
 # the [service] extra, each pinned and hash-checked), the project, the bundled models baked in,
 # a non-root user, a health check on /readyz, uvicorn (through `ds3d-serve`, which runs itself
-# under jemalloc: flat memory, service/allocator.py). Closed by default: it refuses to start
+# under jemalloc: flat memory, ds3d_service/allocator.py). Closed by default: it refuses to start
 # without DS3D_API_KEYS (keys, or a file of keys mounted as a secret).
 FROM python:3.11-slim
 
@@ -40,7 +40,7 @@ COPY pyproject.toml README.md ./
 # package ds3d.models onto models/ (pyproject.toml). Editable, so that the image holds one copy.
 COPY models models
 COPY ds3d ds3d
-COPY service service
+COPY ds3d_service ds3d_service
 RUN pip install --no-cache-dir --no-deps -e .
 
 USER 10001:10001

@@ -7,7 +7,7 @@
 # Each round times MediaPipe (`static_image_mode=True, model_complexity=1`, one LSP test image at
 # a time, the first IMAGES of im1001-im2000, default 64) and then `ds3d bench pipeline --threads
 # $THREADS --workers $WORKERS --batch-sizes 16` (the first 16 LSP test images, people searched: no
-# box; WORKERS=2 THREADS=1: two processes of one thread, ds3d.workers), and prints both images/s
+# box; WORKERS=2 THREADS=1: two processes of one thread, ds3d.runners.workers), and prints both images/s
 # and their ratio. MediaPipe runs in its own virtual environment ($PEER_VENV,
 # default .peer-venv, made at the first run), so that none of its dependencies reach ds3d's.
 set -euo pipefail

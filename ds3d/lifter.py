@@ -19,9 +19,11 @@ sets of which poses), `neighbours` (`retrieve` + `fit_projections`), `weight_nei
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ds3d.fit.bones import bone_lengths
@@ -35,10 +37,11 @@ from ds3d.fit.camera import (
 from ds3d.fit.energy import projection_energy
 from ds3d.fit.selection import set_energy, top_weighted
 from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
-from ds3d.inputs import intrinsics_batch, joints_2d_batch, visibility_batch
+from ds3d.inputs import PoseInput, intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.skeleton import SET_NAMES, hip_midpoint, joint_set_mask
+from ds3d.util.groups import group_rows
 from ds3d.util.paths import MODELS_DIR, require_models
 from ds3d.util.timing import stage_timer
 
@@ -141,6 +144,27 @@ class Neighbours:
     residuals: torch.Tensor
 
 
+@dataclass(frozen=True)
+class LiftedPose:
+    """One pose lifted (a row of LiftResult): joints_3d (14, 3) float32 mm, bone_lengths (14,)
+    float32 mm, joint_set, energy, root_position (3,) float32 mm or None where no camera placed
+    it."""
+
+    joints_3d: np.ndarray
+    bone_lengths: np.ndarray
+    joint_set: str
+    energy: float
+    root_position: np.ndarray | None
+
+    def to_json(self) -> dict:
+        """JSON-ready: every field, arrays as lists."""
+        return {
+            f.name: value.tolist() if isinstance(value, np.ndarray) else value
+            for f in dataclasses.fields(self)
+            for value in [getattr(self, f.name)]
+        }
+
+
 @dataclass
 class LiftResult:
     """joints_3d: (B, 14, 3) float32 mm, camera-oriented (x right, y down, z away from the
@@ -150,8 +174,8 @@ class LiftResult:
     not scored (LifterConfig.partial_sets). projection: (B, 6) M^ (ds3d.fit.camera).
     root_position: (B, 3) float32 mm, the hip midpoint in camera coordinates (joints_3d +
     root_position: the joints there), placed by M^ (ds3d.fit.camera.camera_translation) with
-    the intrinsics given, or else the `camera` given; None with neither.
-    timings_ms: wall time of each stage for the whole batch."""
+    the intrinsics given, or else the `camera` given; NaN rows for poses without either, None
+    where no pose had one. timings_ms: wall time of each stage for the whole batch."""
 
     joints_3d: torch.Tensor
     bone_lengths: torch.Tensor
@@ -161,6 +185,49 @@ class LiftResult:
     projection: torch.Tensor
     root_position: torch.Tensor | None
     timings_ms: dict[str, float]
+
+    def pose(self, i: int) -> LiftedPose:
+        """Pose i (of the B)."""
+        root = None if self.root_position is None else self.root_position[i]
+        return LiftedPose(
+            self.joints_3d[i].numpy(),
+            self.bone_lengths[i].numpy(),
+            self.joint_set[i],
+            float(self.energy[i]),
+            None if root is None or bool(root.isnan().any()) else root.numpy(),
+        )
+
+    @classmethod
+    def gather(cls, parts: Sequence[tuple[list[int], LiftResult]]) -> LiftResult:
+        """One result of poses lifted in parts: (rows, the result of those poses), the rows of
+        all parts together 0..B-1. Each stage's timings_ms are summed over the parts."""
+        order = torch.tensor([row for rows, _ in parts for row in rows]).argsort()
+        results = [part for _, part in parts]
+
+        def cat(name: str) -> torch.Tensor:
+            return torch.cat([getattr(r, name) for r in results])[order]
+
+        roots = None
+        if any(r.root_position is not None for r in results):
+            roots = torch.cat(
+                [
+                    torch.full((len(r.energy), 3), torch.nan)
+                    if r.root_position is None
+                    else r.root_position
+                    for r in results
+                ]
+            )[order]
+        stages = {k: None for r in results for k in r.timings_ms}
+        return cls(
+            joints_3d=cat("joints_3d"),
+            bone_lengths=cat("bone_lengths"),
+            joint_set=[name for r in results for name in r.joint_set],
+            energy=cat("energy"),
+            set_energies=cat("set_energies"),
+            projection=cat("projection"),
+            root_position=roots,
+            timings_ms={k: sum(r.timings_ms.get(k, 0.0) for r in results) for k in stages},
+        )
 
 
 class Lifter:
@@ -223,6 +290,27 @@ class Lifter:
             and (given := intrinsics_batch(camera, len(query.joints_2d))) is not None
         ):
             placed_by = given.to(self.device)
+        return self._lift(query, placed_by)
+
+    @torch.inference_mode()
+    def run(self, inputs: Sequence[PoseInput]) -> LiftResult:
+        """lift() of B 2D poses already checked (ds3d.inputs.pose_input), each with its own
+        intrinsics or none (those without are not placed: NaN rows of root_position)."""
+        parts = []
+        for rows in group_rows(item.intrinsics is not None for item in inputs).values():
+
+            def stacked(name: str, rows=rows) -> torch.Tensor:
+                values = np.stack([getattr(inputs[i], name) for i in rows])
+                return torch.from_numpy(values).to(self.device)
+
+            x, visible = stacked("joints_2d"), stacked("visible")
+            k = None if inputs[rows[0]].intrinsics is None else stacked("intrinsics")
+            parts.append((rows, self._lift(Query(x, visible, image_frame(x, visible, k)), k)))
+        return LiftResult.gather(parts)
+
+    def _lift(self, query: Query, placed_by: torch.Tensor | None) -> LiftResult:
+        """The stages of lift() on a query, its people placed by the camera `placed_by`
+        (B, 3, 3) where given."""
         timings: dict[str, float]
         problems, timings = self.problems(query), {}
         found = self.neighbours(problems, timings=timings)

@@ -43,7 +43,7 @@ class Person:
     facing_camera: float
     joint_set: str
     psm_energy: np.ndarray
-    track_id: int | None = None  # in a video, the person's track (ds3d.tracking.Tracker)
+    track_id: int | None = None  # in a video, the person's track (ds3d.people.tracking.Tracker)
 
     @property
     def joints_3d_camera(self) -> np.ndarray:
@@ -70,10 +70,10 @@ class PipelineResult:
         are together, best first.
     box: (N, 4) float32 x0, y0, x1, y1 px, the box of the person's joints (ds3d.boxes).
     score: (N,) float32 in [0, 1], the probability that it is a person
-        (ds3d.image2d.search.person_probability).
-    score_evidence: (N, 3) float32, what the score weighs (ds3d.image2d.search.person_evidence):
+        (ds3d.people.score).
+    score_evidence: (N, 3) float32, what the score weighs (ds3d.people.score.person_evidence):
         the 2D stage's PSM score, the pose's limb stretch, the search's root score of its
-        proposal (SearchParams.proposal_floor where it had none).
+        proposal (NaN where it had none).
     person_found: (N,) bool, the score at least min_score (with a box given: True, the caller
         said where the person is). With people="best" an image where nobody scores min_score
         still answers its likeliest pose, flagged False.
@@ -149,26 +149,33 @@ class PipelineResult:
         )
 
     @classmethod
-    def concat(cls, parts: Sequence[PipelineResult], images: Sequence[int]) -> PipelineResult:
-        """One result of a batch split by image into consecutive parts: parts[k] the result of
-        the next images[k] images. Each stage's timings_ms are summed over the parts."""
-        offsets = np.cumsum([0, *images[:-1]])
+    def concat(cls, parts: Sequence[PipelineResult], offsets: Sequence[int]) -> PipelineResult:
+        """One result of parts' people one after the other, offsets[k] added to part k's
+        image_index (a batch split by image into consecutive parts: the index of each part's
+        first image). Each stage's timings_ms are summed over the parts."""
         fields: dict = {}
         for f in dataclasses.fields(cls):
             values = [getattr(part, f.name) for part in parts]
             if f.name == "image_index":
-                fields[f.name] = torch.cat(
-                    [v + int(o) for v, o in zip(values, offsets, strict=True)]
-                )
-            elif isinstance(values[0], torch.Tensor):
+                values = [v + int(o) for v, o in zip(values, offsets, strict=True)]
+            if isinstance(values[0], torch.Tensor):
                 fields[f.name] = torch.cat(values)
             elif isinstance(values[0], list):
                 fields[f.name] = [x for v in values for x in v]
             elif f.name == "timings_ms":
-                fields[f.name] = {k: sum(v.get(k, 0.0) for v in values) for k in values[0]}
+                stages = {k: None for v in values for k in v}
+                fields[f.name] = {k: sum(v.get(k, 0.0) for v in values) for k in stages}
             else:
                 fields[f.name] = values[0]
         return cls(**fields)
+
+    @classmethod
+    def gather(cls, parts: Sequence[tuple[torch.Tensor, PipelineResult]]) -> PipelineResult:
+        """One result of people lifted in parts: (rows (n_k,) int64, the result of those n_k
+        people), the rows of all parts together 0..N-1. Timings as concat."""
+        result = cls.concat([part for _, part in parts], [0] * len(parts))
+        order = torch.cat([rows for rows, _ in parts]).argsort()
+        return result.rows(order)
 
     def rows(self, index: torch.Tensor) -> PipelineResult:
         """The people `index` (K,) int64, in that order."""

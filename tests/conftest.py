@@ -42,10 +42,15 @@ def small_model(data_dir, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def model_dir(data_dir, tmp_path_factory):
-    """A --small 2D model beside a link to the bundled pose database."""
+    """A --small 2D model beside a link to the bundled pose database. Its person score is the
+    bundled model's, a stand-in that lets it search (fitting one takes minutes)."""
     from ds3d.cli import main as cli
+    from ds3d.people.score import PersonScore
 
     out = tmp_path_factory.mktemp("models")
     assert cli(["train-2d", "--small", "--no-eval", "--out", str(out / "image2d")]) == 0
+    bundled = PersonScore.load(MODELS_DIR / "image2d")
+    assert bundled is not None, "models/image2d/person_score.json"
+    bundled.save(out / "image2d")
     (out / "posedb").symlink_to(MODELS_DIR / "posedb")
     return out

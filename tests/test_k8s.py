@@ -74,8 +74,8 @@ def test_the_rayservice_runs_the_serve_application_on_valid_pods():
     config = yaml.safe_load(service["spec"]["serveConfigV2"])
     (application,) = config["applications"]
     module, builder = application["import_path"].split(":")
-    assert (module, builder) == ("service.ray_serve", "app_builder")
-    source = (K8S_DIR.parents[1] / "service" / "ray_serve.py").read_text()
+    assert (module, builder) == ("ds3d_service.ray_serve", "app_builder")
+    source = (K8S_DIR.parents[1] / "ds3d_service" / "ray_serve.py").read_text()
     assert f"def {builder}(" in source
     local = yaml.safe_load((K8S_DIR.parent / "ray-serve.yaml").read_text())["applications"][0]
     assert set(application["args"]) == set(local["args"])

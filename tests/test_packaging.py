@@ -29,6 +29,8 @@ PYPROJECT = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())
 MODEL_FILES = {
     "MODEL_CARD.md",
     "image2d/manifest.json",
+    "image2d/joint_calibration.json",
+    "image2d/person_score.json",
     "image2d/psm.pt",
     "image2d/facing.pt",
     "image2d/jointnet.pt",
@@ -48,7 +50,7 @@ def test_every_package_of_the_source_tree_is_listed_in_pyproject():
     assert setuptools["package-dir"] == {"ds3d.models": "models"}
     found = {
         ".".join(folder.relative_to(PROJECT_ROOT).parts)
-        for top in ("ds3d", "service")
+        for top in ("ds3d", "ds3d_service")
         for folder in [PROJECT_ROOT / top, *(PROJECT_ROOT / top).rglob("*")]
         if folder.is_dir() and any(folder.glob("*.py"))
     }
@@ -89,13 +91,13 @@ def test_missing_models_name_the_env_var_and_the_package_data(monkeypatch, tmp_p
 
 
 def test_client_sdk_imports_without_torch():
-    """service.client depends on httpx and numpy only: torch, faiss and fastapi blocked."""
+    """ds3d_service.client depends on httpx and numpy only: torch, faiss and fastapi blocked."""
     code = (
         "import sys\n"
         "for name in ('torch', 'faiss', 'fastapi'):\n"
         "    sys.modules[name] = None  # importing it raises ImportError\n"
-        "import service.client\n"
-        "assert service.client.PoseClient and service.client.AsyncPoseClient\n"
+        "import ds3d_service.client\n"
+        "assert ds3d_service.client.PoseClient and ds3d_service.client.AsyncPoseClient\n"
     )
     subprocess.run([sys.executable, "-c", code], cwd=PROJECT_ROOT, check=True, timeout=60)
 
@@ -155,9 +157,9 @@ def test_wheel_installs_and_predicts_outside_the_checkout(data_dir, tmp_path):
         MODEL_FILES
     )
     tops = {name.split("/")[0] for name in names}
-    assert {top for top in tops if not top.endswith(".dist-info")} == {"ds3d", "service"}
-    page = {p.name for p in (PROJECT_ROOT / "service" / "static").iterdir()}  # the web page
-    assert {n.removeprefix("service/static/") for n in names if "/static/" in n} == page
+    assert {top for top in tops if not top.endswith(".dist-info")} == {"ds3d", "ds3d_service"}
+    page = {p.name for p in (PROJECT_ROOT / "ds3d_service" / "static").iterdir()}  # the web page
+    assert {n.removeprefix("ds3d_service/static/") for n in names if "/static/" in n} == page
 
     venv = tmp_path / "venv"
     python = _fresh_venv(venv)

@@ -4,7 +4,6 @@ the bundled pose database; plus the bundled default model as a user gets it."""
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,12 +13,11 @@ from ds3d.boxes import person_boxes
 from ds3d.data.lsp import load_lsp
 from ds3d.errors import InvalidBox
 from ds3d.fit.energy import limb_lengths
-from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.result import LOG_EPS, Estimate2D
-from ds3d.image2d.search import Proposals
 from ds3d.io.images import read_image
+from ds3d.iterative import neighbour_scores
 from ds3d.lifter import LifterConfig
-from ds3d.pipeline import Candidate, Pipeline, PipelineConfig, neighbour_scores
+from ds3d.pipeline import Pipeline, PipelineConfig
 from ds3d.refine import cells_to_image, image_to_cells
 from ds3d.skeleton import L_HIP, NUM_JOINTS, R_HIP, SET_NAMES
 from ds3d.util.paths import MODELS_DIR
@@ -273,91 +271,3 @@ def test_a_box_the_image_cannot_hold_is_refused_before_any_work(pipeline, images
     for box, why in [((10, 10, 5, 40), "no area"), ((width + 1, 0, width + 9, 9), "outside")]:
         with pytest.raises(InvalidBox, match=why):
             pipeline.estimate(images[:1], bboxes=[box])
-
-
-def test_proposals_without_area_are_not_cropped():
-    """A search proposal whose joints share one column (a PSM collapsed against a level's edge)
-    has no box to crop: it is dropped, even as the best one, where a crop of it raised
-    InvalidBox out of Pipeline.estimate."""
-    flat = np.zeros((NUM_JOINTS, 2), np.float32)
-    flat[:, 1] = np.linspace(38.0, 456.0, NUM_JOINTS)  # x = 0 for every joint
-    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
-    found = Proposals(np.stack([flat, person]), np.array([300.0, 200.0], np.float32), [])
-    image = np.zeros((480, 640, 3), np.uint8)
-    boxes = [c.box.tolist() for c in _candidates(found, image)]
-    assert boxes == [[10.0, 5.0, 60.0, 90.0], [0.0, 0.0, 640.0, 480.0]]
-
-
-def test_the_whole_image_is_no_second_crop_of_a_person_who_fills_it():
-    """A photo that is a tight crop around its person: the proposal's crop holds the whole
-    image, which is then not estimated again as a crop of its own; a smaller person leaves the
-    whole image its own crop (it finds people the image's edge cuts)."""
-    image = np.zeros((200, 120, 3), np.uint8)
-    ys, xs = np.linspace(15.0, 185.0, NUM_JOINTS), np.linspace(25.0, 95.0, NUM_JOINTS)
-    filling = np.stack([xs, ys], 1)
-    found = Proposals(filling[None], np.array([300.0], np.float32), [])
-    assert [c.box.tolist() for c in _candidates(found, image)] == [[25.0, 15.0, 95.0, 185.0]]
-    small = 0.3 * filling + 40.0
-    found = Proposals(small[None], np.array([300.0], np.float32), [])
-    assert len(_candidates(found, image)) == 2
-
-
-def test_an_image_asked_for_its_best_person_has_its_best_proposal_alone_estimated():
-    """...and where the search proposes several people, the whole image is no crop of its
-    own, for "best" too: its one pose would join them."""
-    image = np.zeros((480, 640, 3), np.uint8)
-    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
-    found = Proposals(np.stack([person, person + 300.0]), np.array([300.0, 200.0], np.float32), [])
-    every = [c.box.tolist() for c in _candidates(found, image, "all")]
-    assert every == [[10.0, 5.0, 60.0, 90.0], [310.0, 305.0, 360.0, 390.0]]
-    assert [c.box.tolist() for c in _candidates(found, image, "best")] == [every[0]]
-    alone = Proposals(person[None], np.array([300.0], np.float32), [])
-    whole = [0.0, 0.0, 640.0, 480.0]
-    assert [c.box.tolist() for c in _candidates(alone, image, "best")] == [every[0], whole]
-
-
-def test_proposals_below_the_floor_go_on_as_weak_candidates_after_the_others():
-    """The best max_people proposals scoring proposal_floor (and always the best), then the
-    best weak_people of those scoring weak_floor, flagged weak, with their root scores."""
-    image = np.zeros((480, 640, 3), np.uint8)
-    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
-    poses = np.stack([person + 100.0 * k for k in range(4)])
-    found = Proposals(poses, np.array([300.0, 150.0, 90.0, 50.0], np.float32), [])
-    chosen = _candidates(found, image)
-    assert [(c.proposal_score, c.weak) for c in chosen] == [
-        (300.0, False),
-        (150.0, False),
-        (90.0, True),
-    ]
-    assert [c.box.tolist() for c in chosen] == [
-        [10.0 + 100 * k, 5.0 + 100 * k, 60.0 + 100 * k, 90.0 + 100 * k] for k in range(3)
-    ]
-
-
-def test_a_weak_candidate_is_answered_only_apart_from_the_people_answered():
-    """A weak proposal (below proposal_floor) found near an answered person is mostly a second
-    reading of them: it is answered only where its box overlaps nobody answered by more than
-    weak_overlap, and like any other only where it scores min_score."""
-    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
-    shifts = [0.0, 20.0, 200.0, 400.0]  # a strong person; weak: beside them, apart, apart
-    joints = torch.from_numpy(np.stack([person + s for s in shifts])).float()
-    candidates = [
-        Candidate(0, np.zeros(4), False, True, (), score, weak)
-        for score, weak in ((300.0, False), (90.0, True), (90.0, True), (90.0, True))
-    ]
-    sure, unsure = -200.0, -500.0  # PSM scores: a person, nobody
-    psm = torch.tensor([sure, sure, sure, unsure], dtype=torch.float64)
-    evidence = torch.stack(
-        [psm, torch.zeros(4, dtype=torch.float64), torch.full((4,), 90.0, dtype=torch.float64)], -1
-    )
-    evidence[0, 2] = 300.0
-    pipeline = Pipeline(SimpleNamespace(params=EstimatorParams()), None)  # type: ignore[arg-type]
-    estimate = SimpleNamespace(joints_2d=joints)
-    rows, found = pipeline.answered(candidates, estimate, evidence, ["all"], [0.5])  # type: ignore[arg-type]
-    assert rows.tolist() == [0, 2] and found.tolist() == [True, True, True, False]
-
-
-def _candidates(found: Proposals, image: np.ndarray, people: str = "all"):
-    """Pipeline.candidates of one image without a box whose search finds `found`."""
-    estimator = SimpleNamespace(propose=lambda images, search: [found], params=EstimatorParams())
-    return Pipeline(estimator, None).candidates([image], [None], [people])  # type: ignore[arg-type]

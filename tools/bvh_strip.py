@@ -1,6 +1,6 @@
 """The picture of the BVH path in the README: a Human3.6M sequence seen by one of its cameras as
 a 2D track with 10 px of noise (the data holds no video), lifted frame by frame, followed as
-`ds3d predict` follows a video's person (ds3d.tracking), written as BVH (ds3d.io.writers) and
+`ds3d predict` follows a video's person (ds3d.people.tracking), written as BVH (ds3d.io.writers) and
 read back with the project's BVH reader; its frames drawn over time, the 2D input above and the
 file's skeleton by forward kinematics below, where it stands.
 
@@ -24,8 +24,8 @@ from ds3d.data.bvh import forward_kinematics, read_bvh
 from ds3d.data.h36m import load_cameras, load_h36m_sequences
 from ds3d.io.writers import bvh_text
 from ds3d.lifter import Lifter
+from ds3d.people.tracking import follow
 from ds3d.skeleton import LIMBS
-from ds3d.tracking import follow
 
 FPS = 50.0  # Human3.6M's frame rate
 

@@ -6,14 +6,13 @@ replica's return is timed.
     python -m tools.crashtest http://127.0.0.1:8080 --pid-file out/replicas/replica-8001.pid \\
         --replica http://127.0.0.1:8001 --poses FILE --images DIR --duration 60 --kill-at 15
 
---clients closed-loop clients of the SDK (service.client.AsyncPoseClient, --retries extra tries:
-0 shows what the balancer alone achieves) alternate /v1/pose with one of the images and /v1/lift
-with --items poses. At --kill-at seconds the process named by --pid-file is killed; then the
-replica's /readyz is polled until it answers 200 again (its supervisor restarts it: compose's
-restart policy, or docker/local_replicas.sh). Writes OUT/NAME.json: the outcomes by status,
-before / while down / after, the seconds until the replica was ready again, and the requests the
-restarted replica served (from its /metrics). Like tools.loadtest, a client of local targets
-only.
+--clients closed-loop clients of the SDK (ds3d_service.client.AsyncPoseClient, --retries extra
+tries: 0 shows what the balancer alone achieves) alternate /v1/pose with one of the images and
+/v1/lift with --items poses. At --kill-at seconds the process named by --pid-file is killed; then
+the replica's /readyz is polled until it answers 200 again (its supervisor restarts it: compose's
+restart policy, or docker/local_replicas.sh). Writes OUT/NAME.json: the outcomes by status, before /
+while down / after, the seconds until the replica was ready again, and the requests the restarted
+replica served (from its /metrics). Like tools.loadtest, a client of local targets only.
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from service.client import AsyncPoseClient, ServiceError, auth_headers
+from ds3d_service.client import AsyncPoseClient, ServiceError, auth_headers
 from tools.loadtest import LOCAL_HOSTS, image_payloads, read_poses
 
 PHASES = ("before", "down", "after")

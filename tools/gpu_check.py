@@ -22,7 +22,7 @@ wrote), and the tail of its log (OUT/STEP.log). The steps:
                 image's own box
   pipeline_cpu  the same on the CPU alone (CUDA_VISIBLE_DEVICES empty): 2 threads, all
                 threads, and half as many worker processes of 2 threads as there are cores
-                (`_2`, `_all`, `_workers`, ds3d.workers): how the CPU path scales with cores
+                (`_2`, `_all`, `_workers`, ds3d.runners.workers): how the CPU path scales with cores
   eval_lsp      ds3d eval lsp on the packed test images, CUDA and CPU
   eval_h36m     ds3d eval h36m on the packed S11 frames, CUDA and CPU
   serve         ds3d-serve on CUDA, /v1/pose at concurrency 64 and /v1/lift (tools.loadtest)
@@ -192,7 +192,7 @@ def _serve(step, env: dict, out: Path) -> None:
     server_env |= {"DS3D_MAX_QUEUE": "512", "DS3D_MAX_LIFT_BATCH_SIZE": "1024"}
     with open(out / "server.log", "w") as log:
         server = subprocess.Popen(
-            [sys.executable, "-m", "service"],
+            [sys.executable, "-m", "ds3d_service"],
             stdout=log,
             stderr=subprocess.STDOUT,
             env=server_env,

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from ds3d.cli.bench import bench_images, benchmark_poses
+from ds3d.evaluation.speed import bench_images, benchmark_poses
 from ds3d.pipeline import Pipeline
 
 ROWS = 25

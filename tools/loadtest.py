@@ -35,7 +35,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
-from service.client import auth_headers
+from ds3d_service.client import auth_headers
 
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1"}
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}

@@ -28,7 +28,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
-from service.client import auth_headers
+from ds3d_service.client import auth_headers
 from tools.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
 
 KINDS = ("pose", "lift", "bad")

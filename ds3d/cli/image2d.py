@@ -11,7 +11,13 @@ from typing import Any
 
 import torch
 
-from ds3d.cli.parser import DEFAULT_IMAGE2D, add_set_option, field_overrides, write_report
+from ds3d.cli.parser import (
+    DEFAULT_IMAGE2D,
+    add_device_option,
+    add_set_option,
+    field_overrides,
+    write_report,
+)
 from ds3d.data.lsp import load_lsp, load_lspet
 from ds3d.evaluation.lsp import evaluate_2d
 from ds3d.image2d.estimator import PoseEstimator2D
@@ -103,7 +109,7 @@ def register(commands, evals, benches) -> None:
     e.add_argument("--limit", type=int, default=None, help="first N images only (after --start)")
     e.add_argument("--batch", type=int, default=16)
     e.add_argument("--threads", type=int, default=1)
-    e.add_argument("--device", default="cpu", help="where the 2D stage runs (cpu, cuda)")
+    add_device_option(e, "where the 2D stage runs")
     e.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     e.add_argument(
         "--write-manifest", action="store_true", help="record the metrics in the model manifest"

@@ -1,8 +1,9 @@
 """The `ds3d` parser. Each area module listed in COMMAND_MODULES has `register(commands, evals,
 benches)`, where the three arguments are argparse sub-parser collections for `ds3d <cmd>`,
 `ds3d eval <what>` and `ds3d bench <what>`; every parser it adds sets
-`func=callable(args) -> int | None`. Shared here: the model options, `--set NAME=VALUE`
-overrides of a dataclass's fields, and JSON reports.
+`func=callable(args) -> int | None`. Shared here, each defined once: the model options
+(--model-dir, --database, --device, --threads, --workers), `--set NAME=VALUE` overrides of a
+dataclass's fields, the people options, the pipeline they load, and JSON reports.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from ds3d.inputs import MIN_SCORE
 from ds3d.util.paths import MODELS_DIR
 from ds3d.util.progress import set_quiet
 
@@ -24,6 +26,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "ds3d.cli.data",
     "ds3d.cli.lift",
     "ds3d.cli.image2d",
+    "ds3d.cli.predict",
     "ds3d.cli.pipeline",
     "ds3d.cli.ray_data",
     "ds3d.cli.bench",
@@ -58,20 +61,54 @@ def main(argv: list[str] | None = None) -> int:
 
 def add_model_options(parser, threads: int | None = 1, device: bool = False) -> None:
     """--model-dir (holds image2d/ and the pose databases), --database, --threads (default
-    `threads`; None: torch's default) and, with `device`, --device."""
+    `threads`; None: torch's default) and, with `device`, --device (add_device_option)."""
     parser.add_argument(
         "--model-dir", type=Path, default=MODELS_DIR, help="holds image2d/, posedb/"
     )
     parser.add_argument("--database", default="posedb", help="pose database folder in --model-dir")
     if device:
-        parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+        add_device_option(parser)
     parser.add_argument("--threads", type=int, default=threads, help="torch CPU threads")
+
+
+def add_device_option(parser, help: str = "where the models run") -> None:
+    """--device: cpu or cuda, by default cuda where torch sees a GPU."""
+    default = "cuda" if torch.cuda.is_available() else "cpu"
+    parser.add_argument("--device", choices=("cpu", "cuda"), default=default, help=help)
+
+
+def add_workers_option(parser) -> None:
+    """--workers: processes that split each batch (ds3d.runners.workers)."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes, each its own models with --threads torch threads, that split each "
+        "batch (more images/s than as many threads on a CPU; about 1 GB each)",
+    )
 
 
 def set_threads(args) -> None:
     """torch's CPU threads from --threads, when given."""
     if args.threads:
         torch.set_num_threads(args.threads)
+
+
+def load_pipeline(args, config=None):
+    """The Pipeline of --model-dir and --database, on --device where the command has it (else
+    the CPU), on --threads torch threads, with `config` (a PipelineConfig; None: the default);
+    with --workers N > 1, a PipelineWorkers of N such pipelines (ds3d.runners.workers), whose
+    estimate() and run() are the Pipeline's."""
+    from ds3d.pipeline import Pipeline, PipelineConfig
+    from ds3d.runners.workers import PipelineWorkers
+
+    config = config or PipelineConfig()
+    device = getattr(args, "device", "cpu")
+    load = {"model_dir": args.model_dir, "device": device, "database": args.database}
+    if getattr(args, "workers", 1) > 1:
+        return PipelineWorkers(args.workers, args.threads or 1, config=config, **load)
+    set_threads(args)
+    return Pipeline.load(config=config, **load)
 
 
 def add_people_options(parser) -> None:
@@ -83,11 +120,12 @@ def add_people_options(parser) -> None:
         help="best: the likeliest person per image; all: every person found",
     )
     parser.add_argument(
-        "--min-score", type=float, default=None, help="default: ds3d.pipeline.MIN_SCORE"
+        "--min-score", type=float, default=MIN_SCORE, help="people scoring less are not answered"
     )
 
 
 def add_set_option(parser, text: str) -> None:
+    """--set NAME=VALUE, repeatable: overrides of a dataclass's fields (field_overrides)."""
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=text)
 
 

@@ -1,5 +1,5 @@
-"""`ds3d batch`: the pipeline over many images on a Ray Data actor pool (ds3d.io.ray_data). Ray, an
-optional extra, is imported only when the command runs."""
+"""`ds3d batch`: the pipeline over many images on a Ray Data actor pool
+(ds3d.runners.ray_data). Ray, an optional extra, is imported only when the command runs."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from ds3d.cli.parser import add_model_options, add_people_options
+from ds3d.cli.parser import add_device_option, add_model_options, add_people_options
 
 
 def register(commands, evals, benches) -> None:
@@ -45,11 +45,8 @@ def register(commands, evals, benches) -> None:
         action="store_true",
         help="also re-run the images in OUT/errors.jsonl (their old lines stay)",
     )
-    p.add_argument(
-        "--device",
-        choices=("cpu", "cuda"),
-        default="cpu",
-        help="where each actor runs the joint network and the 3D stage (cuda: a GPU per actor)",
+    add_device_option(
+        p, "where each actor runs the joint network and the 3D stage (cuda: a GPU per actor)"
     )
     p.add_argument(
         "--address",
@@ -61,7 +58,7 @@ def register(commands, evals, benches) -> None:
 
 
 def batch(args) -> int:
-    from ds3d.io.ray_data import (
+    from ds3d.runners.ray_data import (
         RAY_MISSING,
         BatchOptions,
         ResultWriter,

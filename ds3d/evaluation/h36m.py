@@ -22,8 +22,8 @@ from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_se
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
 from ds3d.lifter import PAPER_OVERRIDES
+from ds3d.people.tracking import follow, jitter
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
-from ds3d.tracking import follow, jitter
 from ds3d.util.progress import progress
 
 
@@ -191,7 +191,7 @@ def video_report(
     """Video: every `every`-th sequence of `subject` (sorted), its first `frames` frames at 50
     fps seen by camera 1 as 2D tracks with `noise_px` of Gaussian noise per coordinate, lifted
     frame by frame with the camera's intrinsics and placed in its coordinates; then the same
-    followed as a track (ds3d.tracking.follow: One-Euro smoothed, bones held). Per version:
+    followed as a track (ds3d.people.tracking.follow: One-Euro smoothed, bones held). Per version:
     jitter (mean frame-to-frame acceleration, mm/frame^2), the camera-space MPJPE and the
     MPJPE with hip midpoints aligned, mm."""
     sequences = load_h36m_sequences((subject,))

@@ -15,7 +15,13 @@ import time
 import torch
 
 from ds3d.data.lsp import PoseAnnotations
-from ds3d.evaluation.metrics import pck, pixel_error, torso_diameter
+from ds3d.evaluation.metrics import (
+    expected_calibration_error,
+    pck,
+    pixel_error,
+    reliability,
+    torso_diameter,
+)
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import Estimate2D
 from ds3d.io.images import read_image
@@ -118,7 +124,7 @@ def evaluate_refinement(
     """The protocol for the 2D pose after each iteration of each of REFINEMENT_VARIANTS
     `names` (with PipelineConfig field `overrides`), beside the 2D stage's ("initial"), all
     from one 2D estimate per image. searched: also the pipeline as a user without a box runs
-    it ("searched": the best person the search finds, ds3d.image2d.search), what the tight
+    it ("searched": the best person the search finds, ds3d.people.search), what the tight
     crops' own box is worth. Leaves the pipeline configured as the last variant.
     Returns {"variants", "seconds", "results"}."""
     overrides = overrides or {}
@@ -177,3 +183,28 @@ def joint_outcomes(
     gt = torch.from_numpy(ann.joints).float()
     correct = (torch.cat(joints) - gt).norm(dim=-1) <= threshold * torso_diameter(gt)[:, None]
     return torch.cat(raw), correct
+
+
+def confidence_report(raw: torch.Tensor, correct: torch.Tensor, calibration=None) -> dict:
+    """How well confidences say how often joints are right, from joint_outcomes (raw (N, 14),
+    correct (N, 14)): the fraction right and, for the raw confidences and those of
+    `calibration` (a ds3d.confidence.JointCalibration) where given, the expected calibration
+    error, the reliability bins and each joint's mean confidence against its fraction right."""
+    curves = {"raw": raw} | ({} if calibration is None else {"calibrated": calibration(raw)})
+    return {
+        "fraction_right": round(float(correct.double().mean()), 4),
+        **{
+            label: {
+                "ece": round(expected_calibration_error(conf, correct), 4),
+                "reliability": reliability(conf, correct),
+                "per_joint": {
+                    name: {
+                        "confidence": round(float(conf[:, j].mean()), 4),
+                        "fraction_right": round(float(correct[:, j].double().mean()), 4),
+                    }
+                    for j, name in enumerate(JOINT_NAMES)
+                },
+            }
+            for label, conf in curves.items()
+        },
+    }

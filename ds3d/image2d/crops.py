@@ -9,8 +9,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ds3d.boxes import checked_box
-from ds3d.errors import InvalidImage
 from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.params import EstimatorParams
 
@@ -57,20 +55,17 @@ def crop_region(
 
 
 def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[Crop]:
-    """Base scale per image: from the person box if given, else from the image size."""
+    """Base scale per image (H_i, W_i, 3) uint8 RGB: from its person box (x0, y0, x1, y1) px, as
+    checked where it entered (ds3d.inputs), if given, else from the image size."""
     out = []
     for i, image in enumerate(images):
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise InvalidImage(
-                f"image {i} must be (H, W, 3) uint8, got {image.shape} {image.dtype}"
-            )
         box = None if bboxes is None else bboxes[i]
         h, w = image.shape[:2]
         if box is None:
             extent = max(h, w) / params.image_to_extent
             out.append(Crop(image, 0, 0, params.canonical_extent / extent))
             continue
-        (cx0, cy0, cx1, cy1), extent = crop_region(checked_box(box, w, h), w, h, params)
+        (cx0, cy0, cx1, cy1), extent = crop_region(box, w, h, params)
         out.append(
             Crop(_cropped(image, cx0, cy0, cx1, cy1), cx0, cy0, params.canonical_extent / extent)
         )

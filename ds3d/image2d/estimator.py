@@ -60,7 +60,6 @@ from ds3d.image2d.model_files import load_model
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures, infer
 from ds3d.image2d.result import Estimate2D, gather_rows, keep_better, pad_maps
-from ds3d.image2d.search import Proposals, SearchParams, check_searchable, propose
 from ds3d.util.paths import MODELS_DIR, require_models
 from ds3d.util.threads import map_on_threads, split_rows
 
@@ -97,8 +96,8 @@ class PoseEstimator2D:
 
     def to(self, device: torch.device | str) -> PoseEstimator2D:
         """The estimator with every part of its model on `device`: the images go there once
-        their crops are resized (on the CPU, with OpenCV), and every step of estimate() and
-        propose() runs there."""
+        their crops are resized (on the CPU, with OpenCV), and every step of estimate() runs
+        there (and of the search for people, ds3d.people.search)."""
         return PoseEstimator2D(
             [forest.to(device) for forest in self.layers],
             self.mixtures.to(device),
@@ -131,13 +130,15 @@ class PoseEstimator2D:
         """2D poses of a batch of images.
 
         images: B arrays (H_i, W_i, 3) uint8 RGB; bboxes: None or B entries, each None or a
-        person box (x0, y0, x1, y1) in image pixels (the region around it is cropped first).
+        person box (x0, y0, x1, y1) in image pixels (the region around it is cropped first),
+        as checked where they entered (ds3d.inputs).
         scales: pyramid scales relative to the base scale (default: the model's 6).
         views: None or B entries, the joint network's maps of each image at some scales (the
-        search's levels, Proposals.levels): where the network chooses a crop's scale, the maps
-        it reads are read off them (jointnet.read_logits) when one is near enough in scale,
-        not computed again. (Read so for the final pass too, they cost 2.9 points of PCK on
-        LSP train's held-out images searched: a view's scale is up to 1.3 times off.)
+        search's levels, ds3d.people.search.Proposals.levels): where the network chooses a
+        crop's scale, the maps it reads are read off them (jointnet.read_logits) when one is
+        near enough in scale, not computed again. (Read so for the final pass too, they cost
+        2.9 points of PCK on LSP train's held-out images searched: a view's scale is up to 1.3
+        times off.)
         Returns Estimate2D (joints in each input image's pixels).
 
         Each image's scale is chosen by InferenceParams.scale_choice, and only the chosen scale
@@ -172,34 +173,6 @@ class PoseEstimator2D:
         best = person_centric(best)
         best.timings = {**timings, "total": round(time.perf_counter() - t_start, 6)}
         return best
-
-    def propose(
-        self, images: list[np.ndarray], search: SearchParams | None = None
-    ) -> list[Proposals]:
-        """Where the people are in B whole images (H_i, W_i, 3) uint8 RGB: ds3d.image2d.search,
-        the images split over torch.get_num_threads() threads as in estimate(). Raises
-        InvalidImage for a malformed image or one too elongated to search (before any work),
-        DataFormatError without a joint network."""
-        jointnet = self.jointnet
-        if jointnet is None:
-            raise DataFormatError("the search for people needs the joint network")
-        working_crops(images, None, self.params)  # checks the images
-        if not images:
-            return []
-        p, search = self.params, search or SearchParams()
-        for image in images:
-            check_searchable(image.shape[0], image.shape[1], search)
-
-        def run(rows: torch.Tensor) -> list[Proposals]:
-            part = [images[i] for i in rows.tolist()]
-            extent, weight = p.canonical_extent, p.unary_weight
-            return propose(jointnet, self.mixtures, part, extent, weight, search)
-
-        return [
-            found
-            for part in map_on_threads(run, split_rows(len(images), self.device))
-            for found in part
-        ]
 
     def _estimate_crops(self, crops: list[Crop], scales: list[float]) -> Estimate2D:
         """estimate() of crops on the calling thread, before the left/right decision; sets

@@ -1,2 +1,3 @@
-"""Images and results in and out: decoding untrusted images, the sources frames come from, the
-files a run writes, and the streamed runs over them (`ds3d predict`, Ray Data's `ds3d batch`)."""
+"""Images and results in and out: decoding untrusted images (images.py), the sources frames come
+from (sources.py), one image's answer (prediction.py) and the files a run writes (writers.py).
+Nothing here runs a pipeline: that is ds3d.runners."""

@@ -9,9 +9,9 @@
                              skeletons on a panel beside them
     NAME_3d.npz, NAME_3d.csv each video: the best person's joints per frame, as a sequence
     bvh/NNNNNN_NAME_K.bvh    --bvh: each still image's person K (0: the best) as a one-frame BVH
-    NAME_K.bvh               --bvh: each video's tracked person K (ds3d.tracking), a frame per
-                             frame read from its first to its last (ds3d.kinematics: joint
-                             angles, the root where the person stands)
+    NAME_K.bvh               --bvh: each video's tracked person K (ds3d.people.tracking), a
+                             frame per frame read from its first to its last (ds3d.kinematics:
+                             joint angles, the root where the person stands)
 
 COCO's 17 keypoints from ds3d's 14 LSP joints: the shoulders, elbows, wrists, hips, knees and
 ankles map one to one; COCO's nose, eyes and ears have no LSP joint and are written (0, 0)
@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ds3d.data.bvh import format_bvh
-from ds3d.io.predictions import Prediction
+from ds3d.io.prediction import Prediction
 from ds3d.io.sources import DEFAULT_FPS, Frame
 from ds3d.kinematics import camera_motion, to_bvh
 from ds3d.skeleton import JOINT_NAMES

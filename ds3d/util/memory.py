@@ -1,7 +1,7 @@
 """The process's memory: its resident size, the malloc it runs on, and glibc's trim.
 
 What grows in a long-running process is read here (`ds3d bench memory`, the service's /metrics
-and its allocator choice, service/allocator.py).
+and its allocator choice, ds3d_service/allocator.py).
 """
 
 from __future__ import annotations

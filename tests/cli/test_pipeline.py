@@ -1,4 +1,4 @@
-"""`ds3d predict` and the Python predictions (ds3d.cli.pipeline, ds3d.io.predictions)."""
+"""`ds3d predict` and the Python predictions (ds3d.cli.pipeline, ds3d.runners.predict)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""`ds3d batch` (ds3d.cli.ray_data, ds3d.io.ray_data): listing, resuming, a run on a local Ray."""
+"""`ds3d batch` (ds3d.cli.ray_data, ds3d.runners.ray_data): listing, resuming, a run on a local
+Ray."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from ds3d.cli import main as cli
-from ds3d.io.ray_data import (
+from ds3d.runners.ray_data import (
     ERRORS,
     PREDICTIONS,
     BatchOptions,
@@ -53,13 +54,12 @@ def test_done_sources_cuts_a_partial_last_line_and_counts_errors_unless_retried(
 
 
 class _NobodyPipeline:
-    """Pipeline.estimate's stand-in: finds nobody, and fails on a batch holding a 3-px-wide
-    image."""
+    """Pipeline.run's stand-in: finds nobody, and fails on a batch holding a 3-px-wide image."""
 
-    def estimate(self, images, **options):
+    def run(self, inputs, iterations=None):
         from ds3d.result import PipelineResult
 
-        if any(image.shape[1] == 3 for image in images):
+        if any(item.image.shape[1] == 3 for item in inputs):
             raise RuntimeError("too narrow")
         return PipelineResult.empty(1, {})
 
@@ -92,7 +92,7 @@ def test_parse_actors():
 
 def test_the_cli_imports_no_ray_and_batch_says_how_to_install_it(tmp_path, monkeypatch):
     code = "import sys; from ds3d.cli.parser import build_parser; build_parser(); "
-    code += "import ds3d.io.ray_data; assert 'ray' not in sys.modules"
+    code += "import ds3d.runners.ray_data; assert 'ray' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
     monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed: `import ray` fails
     with pytest.raises(SystemExit, match=r"pip install -e '\.\[ray\]'"):

@@ -1,10 +1,12 @@
 import numpy as np
+import pytest
 import torch
 
 from ds3d.boxes import iou, person_boxes
 from ds3d.data.lsp import load_lsp, load_lspet
-from ds3d.evaluation.people import calibration, match, people_of, protocol, score
-from ds3d.image2d.search import SearchParams, person_evidence, person_probability
+from ds3d.evaluation.canvases import people_of, protocol
+from ds3d.evaluation.people import Candidates, calibration, match, score
+from ds3d.people.score import PersonScore
 
 
 def test_iou_and_greedy_matching_take_each_person_once():
@@ -95,51 +97,34 @@ def test_lspet_people_are_those_with_every_joint_annotated(data_dir):
     assert people_of("train", start=700).image_paths == load_lsp(split="train").image_paths[700:]
 
 
-def test_the_score_fit_is_the_likeliest_logistic_of_the_person_evidence(data_dir):
+def test_calibration_fits_the_score_that_tells_the_people_from_the_rest(data_dir):
     """Candidates on canvases: each person's true pose, and copies far from anybody (no
-    match). Their PSM scores and root scores overlap; the scores as answered come from some
-    person_probability. The fit is the logistic that makes the labels most likely: no worse,
-    in log loss, than the one that answered, and it weighs the root score, which tells the
-    people apart here."""
+    match), their root scores apart and their PSM scores overlapping: the fit labels each by
+    whether it matches a person and weighs the root score, which tells them apart. The scores
+    as answered, all 0.9 for candidates of whom half are people, are off by 0.4."""
     canvases = protocol(load_lsp(split="test"), 40, seed=1)
     rng = np.random.default_rng(0)
-    typical = torch.full((13,), 30.0)
-    answered_by = SearchParams(score_center=-260.0, score_width=30.0, stretch_weight=0.5)
-    candidates, labels, evidence_all = [], [], []
+    candidates = []
     for canvas in canvases:
-        poses = np.concatenate([canvas.joints, canvas.joints + 5000.0])
         n = len(canvas.joints)
         person = np.arange(2 * n) < n
-        psm = np.where(person, rng.normal(-250, 15, 2 * n), rng.normal(-280, 15, 2 * n))
-        root = np.where(person, rng.normal(140, 15, 2 * n), rng.normal(120, 15, 2 * n))
-        evidence = person_evidence(
-            torch.from_numpy(psm),
-            torch.from_numpy(poses).float(),
-            typical,
-            torch.from_numpy(root),
-            answered_by,
+        evidence = np.stack(
+            [
+                rng.normal(-260, 15, 2 * n),
+                np.zeros(2 * n),
+                np.where(person, rng.normal(160, 10, 2 * n), rng.normal(100, 10, 2 * n)),
+            ],
+            1,
         )
-        scores = person_probability(evidence, answered_by).numpy()
-        candidates.append((poses, scores, evidence.numpy()))
-        labels.append(person)
-        evidence_all.append(evidence)
-    fit = calibration(canvases, candidates, answered_by)
-    assert fit["candidates"] == sum(len(y) for y in labels) and fit["people"] == sum(
-        int(y.sum()) for y in labels
-    )
-    y = np.concatenate(labels)
-    evidence = torch.cat(evidence_all)
-
-    def log_loss(params: SearchParams) -> float:
-        p = person_probability(evidence, params).numpy().clip(1e-12, 1 - 1e-12)
-        return float(-(y * np.log(p) + (1 - y) * np.log(1 - p)).mean())
-
-    fitted = SearchParams(
-        score_center=fit["score_center"],
-        score_width=fit["score_width"],
-        stretch_weight=fit["stretch_weight"],
-        root_weight=fit["root_weight"],
-    )
-    assert log_loss(fitted) <= log_loss(answered_by) + 1e-3  # rounded to 2-5 decimals
-    assert fit["score_width"] > 0 and fit["root_weight"] > 0
-    assert 0 <= fit["ece"] <= 1
+        poses = np.concatenate([canvas.joints, canvas.joints + 5000.0])
+        candidates.append(Candidates(poses, np.full(2 * n, 0.9), evidence))
+    fit = calibration(canvases, candidates, root_reference=120.0)
+    people = sum(len(c.joints) for c in canvases)
+    assert fit["candidates"] == 2 * people and fit["people"] == people
+    score = PersonScore(**fit["person_score"])
+    evidence = torch.from_numpy(np.concatenate([c.evidence for c in candidates]))
+    label = np.concatenate([np.arange(len(c.scores)) < len(c.scores) // 2 for c in candidates])
+    probability = score(evidence).numpy()
+    assert score.root_weight > 0 and score.root_reference == 120.0
+    assert (probability[label] > 0.5).mean() > 0.95 and (probability[~label] < 0.5).mean() > 0.95
+    assert fit["ece"] == pytest.approx(0.4, abs=1e-6)

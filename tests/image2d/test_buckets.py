@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from ds3d.image2d.buckets import STEPS_PER_OCTAVE, bucket
 from ds3d.image2d.psm import RootScores
-from ds3d.image2d.search import local_peaks
+from ds3d.people.search import local_peaks
 from ds3d.skeleton import NUM_JOINTS
 from tests.image2d.test_psm import STANDING, peaked_unaries, planted_problem
 

@@ -12,9 +12,9 @@ import pytest
 import uvicorn
 
 from ds3d.util.paths import MODELS_DIR
-from service.app import create_app
-from service.engine import Engine
-from service.settings import Settings
+from ds3d_service.app import create_app
+from ds3d_service.engine import Engine
+from ds3d_service.settings import Settings
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
 MODEL_DIR = Settings().model_dir or MODELS_DIR

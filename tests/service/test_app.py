@@ -26,9 +26,9 @@ from ds3d.kinematics import NODES, Motion, forward_kinematics
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
 from ds3d.util.paths import MODELS_DIR
 from ds3d.util.threads import intra_op_threads
-from service.client import AsyncPoseClient, PoseClient, ServiceError
-from service.engine import Engine
-from service.settings import Settings
+from ds3d_service.client import AsyncPoseClient, PoseClient, ServiceError
+from ds3d_service.engine import Engine
+from ds3d_service.settings import Settings
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
 MODEL_DIR = Settings().model_dir or MODELS_DIR
@@ -427,7 +427,7 @@ def test_people_all_and_nobody(engine, serving):
     if engine.pipeline is None:
         pytest.skip("the bundled models have no 2D stage")
     from ds3d.boxes import iou
-    from ds3d.evaluation.people import compose
+    from ds3d.evaluation.canvases import compose
 
     canvas = compose(load_lsp(split="test"), [3, 8], [0.8, 0.5], np.random.default_rng(0))
     assert len(canvas.sources) == 2

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.client import AsyncPoseClient, PoseClient, ServiceError, encode_png
+from ds3d_service.client import AsyncPoseClient, PoseClient, ServiceError, encode_png
 
 
 def lift_answer(request: httpx.Request) -> httpx.Response:
@@ -50,7 +50,8 @@ class Flaky:
 
 def test_sdk_imports_no_heavy_libraries():
     code = (
-        "import sys, service.client; print(sorted({'torch','faiss','fastapi'} & set(sys.modules)))"
+        "import sys, ds3d_service.client; "
+        "print(sorted({'torch','faiss','fastapi'} & set(sys.modules)))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -15,7 +15,7 @@ from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
 from schemathesis.config import SchemathesisConfig  # noqa: E402
 
-from ds3d.image2d.search import SearchParams  # noqa: E402
+from ds3d.inputs import MAX_ASPECT_RATIO  # noqa: E402
 
 EXAMPLES = 25  # per operation and generation mode: bounded, about a minute in all
 
@@ -26,7 +26,7 @@ def png_images(draw) -> bytes:
     max_aspect_ratio times their width), in one colour: the images a schema's "an image" means
     (random bytes are not one, and are refused as invalid_image in the negative cases)."""
     width = draw(st.integers(1, 96))
-    longest = int(width * SearchParams().max_aspect_ratio)
+    longest = int(width * MAX_ASPECT_RATIO)
     height = draw(st.integers(max(1, -(-width // 8)), min(96, longest)))
     colour = draw(st.tuples(*[st.integers(0, 255)] * 3))
     buffer = io.BytesIO()

@@ -1,5 +1,5 @@
-"""service/errors.py: the library's errors answered through one table, registered once for their
-base class; the model queues' errors once for theirs. No models needed."""
+"""ds3d_service/errors.py: the library's errors answered through one table, registered once for
+their base class; the model queues' errors once for theirs. No models needed."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from fastapi.testclient import TestClient
 
 import ds3d.errors
 from ds3d.errors import DataFormatError, Ds3dError, ImageTooLarge, InvalidBox, InvalidImage
-from service.errors import LIBRARY_ERRORS, install_handlers, library_answer, to_api_error
-from service.microbatch import ItemFailed, QueueError
+from ds3d_service.errors import LIBRARY_ERRORS, install_handlers, library_answer, to_api_error
+from ds3d_service.microbatch import ItemFailed, QueueError
 
 LIBRARY_ERROR_TYPES = [
     kind
@@ -65,10 +65,10 @@ def test_each_base_is_registered_once_and_answers_in_the_route():
 
 
 def test_a_bug_in_a_route_is_a_json_500_counted_under_its_route():
-    """The app's own middlewares (service.app): the answer is JSON, and the request is counted
+    """The app's own middlewares (ds3d_service.app): the answer is JSON, and the request is counted
     under the route's template."""
-    from service.app import create_app
-    from service.settings import Settings
+    from ds3d_service.app import create_app
+    from ds3d_service.settings import Settings
 
     app = create_app(Settings())
 

@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from service.microbatch import (
+from ds3d_service.microbatch import (
     BatchStats,
     CallerQueueFull,
     DeadlineExceeded,

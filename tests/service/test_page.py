@@ -1,5 +1,5 @@
-"""The web page at / (service/routes/page.py, service/static/): served with a strict security
-policy and nothing from elsewhere; and, in a real browser (Debian's chromium driven by
+"""The web page at / (ds3d_service/routes/page.py, ds3d_service/static/): served with a strict
+security policy and nothing from elsewhere; and, in a real browser (Debian's chromium driven by
 playwright), the round trip a user makes: a photo in (file, drop, paste, webcam), the skeleton
 drawn over it and in a 3D view that turns and zooms, the API's own error messages, an API key,
 and a phone-sized screen.
@@ -21,9 +21,9 @@ import httpx
 import pytest
 
 from ds3d.errors import DataFormatError
-from service.app import create_app
-from service.routes.page import PAGE_CSP, STATIC_DIR
-from service.settings import Settings
+from ds3d_service.app import create_app
+from ds3d_service.routes.page import PAGE_CSP, STATIC_DIR
+from ds3d_service.settings import Settings
 
 KEY = "page-test-key-0123456789"
 CHROMIUM_ENV = "DS3D_CHROMIUM"

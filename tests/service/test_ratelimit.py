@@ -1,10 +1,10 @@
-"""The per-caller token bucket (service/access/ratelimit.py), on a fake clock."""
+"""The per-caller token bucket (ds3d_service/access/ratelimit.py), on a fake clock."""
 
 from __future__ import annotations
 
 import pytest
 
-from service.access.ratelimit import RequestRate, TooManyRequests
+from ds3d_service.access.ratelimit import RequestRate, TooManyRequests
 
 
 class Clock:

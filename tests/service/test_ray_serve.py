@@ -1,4 +1,4 @@
-"""The API on Ray Serve (service/ray_serve.py): a local single-node Ray, one replica serving a
+"""The API on Ray Serve (ds3d_service/ray_serve.py): a local single-node Ray, one replica serving a
 --small 2D model on a free port of 127.0.0.1, driven by raw httpx; answers as the plain
 service's. Skipped without ray (the optional extra `ray`) or without the datasets."""
 
@@ -17,7 +17,7 @@ try:
     import ray
     from ray import serve
 
-    from service.ray_serve import ServeQueue, app_builder, http_options
+    from ds3d_service.ray_serve import ServeQueue, app_builder, http_options
 except ImportError as exc:
     pytest.skip(
         f"ray[serve] is not installed ({exc}): pip install -e .[ray]", allow_module_level=True
@@ -25,9 +25,9 @@ except ImportError as exc:
 
 from ds3d.data.lsp import load_lsp
 from ds3d.skeleton import JOINT_NAMES
-from service.app import create_app
-from service.microbatch import CallerQueueFull, DeadlineExceeded, ItemFailed, QueueFull
-from service.settings import Settings
+from ds3d_service.app import create_app
+from ds3d_service.microbatch import CallerQueueFull, DeadlineExceeded, ItemFailed, QueueFull
+from ds3d_service.settings import Settings
 
 pytestmark = pytest.mark.slow
 RETRY_AFTER_S = 2

@@ -14,8 +14,8 @@ import pytest
 from PIL import Image
 
 from ds3d.data.lsp import load_lsp
-from ds3d.image2d.search import SearchParams
-from service.engine import Engine
+from ds3d.inputs import MAX_ASPECT_RATIO
+from ds3d_service.engine import Engine
 
 # Degenerate but schema-valid 2D poses for /v1/lift: (joints_2d, visible, intrinsics).
 RNG = np.random.default_rng(0)
@@ -58,7 +58,7 @@ def photo(data_dir) -> bytes:
 
 
 def test_a_thin_strip_is_refused_at_once_and_the_service_serves_on(pose_engine, serving, photo):
-    limit = SearchParams().max_aspect_ratio
+    limit = MAX_ASPECT_RATIO
     with serving(pose_engine, request_timeout_s=30) as u:
         strip, seconds = timed(lambda: post_image(u, png(8, 8000)))
         assert strip.status_code == 422 and seconds < 5, (strip.text, seconds)

@@ -1,5 +1,5 @@
-"""Who may call the service (service/access/keys.py, service/fairness.py, the middleware in
-service/app.py): API keys on every route, keys never in URLs, per-caller limits, CORS, the
+"""Who may call the service (ds3d_service/access/keys.py, ds3d_service/fairness.py, the middleware
+in ds3d_service/app.py): API keys on every route, keys never in URLs, per-caller limits, CORS, the
 browser headers, logs without secrets, and an audit of the installed dependencies."""
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.access.keys import ApiKeys, InvalidKeys, key_id, presented_key, read_keys
-from service.client import PoseClient, ServiceError
+from ds3d_service.access.keys import ApiKeys, InvalidKeys, key_id, presented_key, read_keys
+from ds3d_service.client import PoseClient, ServiceError
 
 KEY_A = "a-first-test-key-0123456789"
 KEY_B = "b-second-test-key-0123456789"
@@ -125,7 +125,7 @@ def test_without_keys_every_caller_is_served(engine, serving):
 
 def test_no_keys_with_keys_required_refuses_to_start(tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith("DS3D_API_KEYS")}
-    command = [sys.executable, "-m", "service", "--require-api-keys", "true", "--port", "0"]
+    command = [sys.executable, "-m", "ds3d_service", "--require-api-keys", "true", "--port", "0"]
     out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "DS3D_API_KEYS" in out.stderr, out.stderr
     keys = tmp_path / "keys"
@@ -211,11 +211,11 @@ def test_answers_carry_a_request_id_and_the_browser_headers(keyed):
 
 
 def test_the_access_log_names_the_key_by_its_id_never_the_key(keyed, caplog):
-    caplog.set_level(logging.INFO, logger="service.access.rules")
+    caplog.set_level(logging.INFO, logger="ds3d_service.access.rules")
     headers = bearer(KEY_A) | {"X-Request-ID": "log-check-1"}
     httpx.post(f"{keyed}/v1/lift?people=all", json=LIFT, headers=headers)
     httpx.post(f"{keyed}/v1/lift", json=LIFT, headers=bearer("wrong-key-0123456789abc"))
-    lines = [r.getMessage() for r in caplog.records if r.name == "service.access.rules"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "ds3d_service.access.rules"]
     mine = [line for line in lines if line.startswith("log-check-1 ")]
     assert mine and f"key:{key_id(KEY_A)}" in mine[0] and "people=all" not in mine[0]
     text = "\n".join(lines)

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from pydantic import SecretStr
 
-from service.__main__ import main, parse_settings
-from service.settings import Settings
+from ds3d_service.__main__ import main, parse_settings
+from ds3d_service.settings import Settings
 
 FIELDS = Settings.model_fields
 

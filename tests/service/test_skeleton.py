@@ -1,5 +1,5 @@
-"""GET /v1/skeleton (service/routes/skeleton.py): the library's own skeleton (ds3d.skeleton, the
-colours of ds3d.viz.overlay), declared in the OpenAPI, open without a key; and the web page
+"""GET /v1/skeleton (ds3d_service/routes/skeleton.py): the library's own skeleton (ds3d.skeleton,
+the colours of ds3d.viz.overlay), declared in the OpenAPI, open without a key; and the web page
 draws with it instead of a copy of its own."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import pytest
 
 from ds3d import skeleton
 from ds3d.viz import overlay
-from service.app import create_app
-from service.routes.page import STATIC_DIR
-from service.settings import Settings
+from ds3d_service.app import create_app
+from ds3d_service.routes.page import STATIC_DIR
+from ds3d_service.settings import Settings
 
 KEY = "skeleton-test-key-0123456789"
 

@@ -92,7 +92,7 @@ def test_a_replica_killed_under_load_loses_no_request(replicas, load_inputs, tmp
     # Without the SDK's retries: nginx passed every request the dead replica refused, or dropped
     # before answering, to the live one. What no balancer can pass on is an answer whose head it
     # had forwarded when the kill cut its body; the app writes head and body in one step of its
-    # event loop (service.app's middlewares), so at most one answer can be caught between them
+    # event loop (ds3d_service.app's middlewares), so at most one answer can be caught between them
     # (the SDK's retries resend it).
     cut = result["by_status"].get("failed:RemoteProtocolError", 0)
     assert result["sent"] > 20 and cut <= 1, result["by_status"]

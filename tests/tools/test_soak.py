@@ -13,7 +13,7 @@ import time
 import httpx
 import pytest
 
-from service.allocator import find_jemalloc
+from ds3d_service.allocator import find_jemalloc
 from tools import soak
 
 
@@ -23,7 +23,8 @@ def server(model_dir, tmp_path):
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    command = [sys.executable, "-m", "service", "--port", str(port), "--model-dir", str(model_dir)]
+    command = [sys.executable, "-m", "ds3d_service", "--port", str(port)]
+    command += ["--model-dir", str(model_dir)]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     url = f"http://127.0.0.1:{port}"
     try:

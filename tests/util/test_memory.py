@@ -11,7 +11,7 @@ import pytest
 
 from ds3d.cli import main as cli
 from ds3d.util.memory import loaded_allocator, resident_mb
-from service.allocator import find_jemalloc
+from ds3d_service.allocator import find_jemalloc
 
 
 def allocator_of_a_child(env: dict[str, str]) -> str:

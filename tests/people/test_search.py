@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+import torch
+
+from ds3d.boxes import person_boxes, suppress
+from ds3d.image2d.psm import RootScores, infer
+from ds3d.people.search import SearchParams, level_extents, local_peaks
+from ds3d.skeleton import NUM_JOINTS
+from tests.image2d.test_psm import STANDING, peaked_unaries, planted_problem
+
+
+def test_levels_reach_from_the_smallest_to_the_largest_person():
+    params = SearchParams()
+    extents = level_extents(480, params)
+    assert extents[0] * 0.7 == pytest.approx(params.min_height * 480)
+    assert extents[-1] * 1.3 >= params.max_height * 480 > extents[-2] * 1.3
+    ratios = np.diff(np.log(extents))
+    np.testing.assert_allclose(ratios, np.log(params.level_ratio))
+
+
+def test_no_level_seeks_people_below_the_pixel_floor():
+    params = SearchParams()
+    small = level_extents(170, params)  # min_height alone would seek 26 px people
+    assert small[0] * 0.7 == pytest.approx(params.min_extent_px)
+    assert small[-1] * 1.3 >= params.max_height * 170
+    assert len(small) < len(level_extents(480, params))
+    assert level_extents(40, params) == []  # nobody in it could be min_extent_px tall
+
+
+def test_local_peaks_are_the_best_separated_maxima():
+    scores = torch.zeros(20, 30)
+    scores[5, 5], scores[5, 6], scores[15, 25], scores[2, 20] = 9.0, 8.0, 7.0, 1.0
+    cells = local_peaks(scores, radius=2, count=2)
+    assert cells.tolist() == [[5, 5], [25, 15]]
+
+
+def test_two_people_are_two_root_peaks_and_their_own_poses():
+    """Unaries with two copies of one pose far apart: the two best root peaks back-track to the
+    two poses, and the best root's pose is infer's MAP."""
+    mixtures = planted_problem(np.random.default_rng(3))
+    height, width = 70, 100
+    first = STANDING + np.array([4.0, 2.0])  # px = cells (stride 1)
+    peaks = [(j, *first[j], 0.0) for j in range(NUM_JOINTS)]
+    peaks += [(j, *(first[j] + [50.0, 0.0]), -1.0) for j in range(NUM_JOINTS)]
+    unaries = torch.tensor(peaked_unaries(height, width, peaks), dtype=torch.float32)[None]
+    cells = torch.from_numpy(first).round().long()
+    upward = RootScores(unaries, mixtures)
+    roots = local_peaks(upward.root[0], radius=5, count=2)
+    found = upward.poses(roots[None])
+    np.testing.assert_allclose(found.cells[0, 0], cells, atol=1)
+    np.testing.assert_allclose(found.cells[0, 1], cells + torch.tensor([50, 0]), atol=1)
+    assert found.score[0, 0] > found.score[0, 1]
+    best = infer(unaries, mixtures)
+    np.testing.assert_array_equal(best.cells[0], found.cells[0, 0])
+    assert float(best.score[0]) == pytest.approx(float(found.score[0, 0]))
+
+
+def test_suppression_keeps_the_better_of_overlapping_people():
+    pose = np.random.default_rng(0).uniform(0, 100, (NUM_JOINTS, 2))
+    poses = np.stack([pose, pose + 3, pose + 500])
+    kept = suppress(person_boxes(poses), np.array([0.2, 0.9, 0.5]))
+    assert kept.tolist() == [1, 2]
