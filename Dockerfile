@@ -2,8 +2,10 @@
 # no CUDA torch is pulled in), the locked dependencies (requirements/service.txt: the runtime and
 # the [service] extra, each pinned and hash-checked), the project, the bundled models baked in,
 # a non-root user, a health check on /readyz, uvicorn (through `ds3d-serve`, which runs itself
-# under jemalloc: flat memory, ds3d_service/allocator.py). Closed by default: it refuses to start
-# without DS3D_API_KEYS (keys, or a file of keys mounted as a secret).
+# under jemalloc: flat memory, ds3d_service/allocator.py). The container's CPU and memory limits
+# size its worker processes and threads (DS3D_WORKERS, DS3D_TORCH_THREADS;
+# ds3d_service/settings.py). Closed by default: it refuses to start without DS3D_API_KEYS (keys,
+# or a file of keys mounted as a secret).
 FROM python:3.11-slim
 
 RUN apt-get update \
@@ -20,11 +22,9 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    OMP_NUM_THREADS=1 \
     DS3D_HOST=0.0.0.0 \
     DS3D_PORT=8000 \
     DS3D_MODEL_DIR=/app/models \
-    DS3D_TORCH_THREADS=1 \
     DS3D_REQUIRE_API_KEYS=true
 
 RUN pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"

@@ -31,7 +31,7 @@ load() {  # NAME KEY LOAD-ARGS...: one load test
 }
 
 serve() {  # EXTRA ENV...: start the service with both keys, wait until it is ready
-    env DS3D_API_KEYS="$GREEDY_KEY,$POLITE_KEY" DS3D_PORT=$PORT "$@" $PY -m service >"$OUT/server.log" 2>&1 &
+    env DS3D_API_KEYS="$GREEDY_KEY,$POLITE_KEY" DS3D_PORT=$PORT "$@" $PY -m ds3d_service >"$OUT/server.log" 2>&1 &
     SERVER=$!
     for _ in $(seq 120); do curl -sf "http://127.0.0.1:$PORT/readyz" >/dev/null && return; sleep 1; done
     echo "the service did not start" >&2; exit 1

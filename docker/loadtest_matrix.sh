@@ -28,7 +28,7 @@ export OMP_NUM_THREADS=1
 for B in ${BATCH_SIZES:-1 16}; do
     mkdir -p "$OUT"
     if [ "$ENDPOINT" = pose ]; then BATCH_VAR=DS3D_MAX_BATCH_SIZE; else BATCH_VAR=DS3D_MAX_LIFT_BATCH_SIZE; fi
-    env "$BATCH_VAR=$B" DS3D_PORT=$PORT $PY -m service >"$OUT/server_b$B.log" 2>&1 &
+    env "$BATCH_VAR=$B" DS3D_PORT=$PORT $PY -m ds3d_service >"$OUT/server_b$B.log" 2>&1 &
     SERVER=$!
     trap 'kill $SERVER 2>/dev/null || true' EXIT
     for _ in $(seq 120); do

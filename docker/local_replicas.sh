@@ -4,7 +4,7 @@
 # NGINX_BIN names another binary):
 #   docker/local_replicas.sh [RUN_DIR]        stop with Ctrl-C or SIGTERM (stops everything)
 # nginx on 127.0.0.1:$PORT (default 8080) with docker/nginx.conf's upstream and proxy settings;
-# a replica (`python -m service`) on each of $REPLICAS (default "8001 8002"), restarted when it
+# a replica (`python -m ds3d_service`) on each of $REPLICAS (default "8001 8002"), restarted when it
 # dies, as compose's `restart: unless-stopped`. Extra service flags: SERVE_ARGS="--model-dir X".
 # RUN_DIR (default out/replicas): the nginx config made here, the logs, replica-PORT.pid (the
 # live process of each replica: `kill -9 $(cat RUN_DIR/replica-8001.pid)` to crash one).
@@ -15,8 +15,10 @@ PORT=${PORT:-8080}
 REPLICAS=${REPLICAS:-"8001 8002"}
 PY=${PY:-.venv/bin/python}
 NGINX_BIN=${NGINX_BIN:-$(command -v nginx || echo /usr/sbin/nginx)}
-# One model thread per replica, as in docker-compose.yml: replicas share the cores.
-export DS3D_TORCH_THREADS=${DS3D_TORCH_THREADS:-1} OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+# One process of one model thread per replica, as a replica of docker-compose.yml sizes itself
+# from its one CPU: replicas share this host's cores.
+export DS3D_WORKERS=${DS3D_WORKERS:-1} DS3D_TORCH_THREADS=${DS3D_TORCH_THREADS:-1}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 mkdir -p "$RUN/tmp"
 RUN=$(realpath "$RUN")
 chmod 1777 "$RUN/tmp"  # nginx's workers (user nobody under root) buffer request bodies here
@@ -36,7 +38,7 @@ supervise() {  # one replica, restarted whenever it exits until we stop
     local port=$1
     while [ ! -f "$RUN/stopping" ]; do
         # shellcheck disable=SC2086  # SERVE_ARGS is a list of flags
-        $PY -m service --host 127.0.0.1 --port "$port" ${SERVE_ARGS:-} >>"$RUN/replica-$port.log" 2>&1 &
+        $PY -m ds3d_service --host 127.0.0.1 --port "$port" ${SERVE_ARGS:-} >>"$RUN/replica-$port.log" 2>&1 &
         echo $! >"$RUN/replica-$port.pid"
         wait $! || echo "$(date +%T) replica $port exited ($?); restarting" >>"$RUN/events.log"
         sleep 0.5

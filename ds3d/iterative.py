@@ -84,7 +84,9 @@ def lift_with_image(
         estimate, unaries=estimate.unaries.to(dev), map_to_image=estimate.map_to_image.to(dev)
     )
     # One frame for every iteration: the warm-started projections stay in its coordinates.
-    first = lifter.query(est.joints_2d.to(dev), None, intrinsics)
+    joints = est.joints_2d.to(dev)
+    visible = torch.ones(joints.shape[:2], dtype=torch.bool, device=dev)
+    first = Query.of(joints, visible, None if intrinsics is None else intrinsics.to(dev))
     query = first
     best: _State | None = None  # per person, the state with the best posterior so far
     start = None  # every set's projections of the iteration before, for a warm start

@@ -103,6 +103,14 @@ class Query:
     visible: torch.Tensor
     frame: CameraFrame
 
+    @classmethod
+    def of(
+        cls, joints_2d: torch.Tensor, visible: torch.Tensor, intrinsics: torch.Tensor | None
+    ) -> Query:
+        """The query of 2D poses already checked (ds3d.inputs), with its frame, on their
+        device: joints_2d (B, 14, 2) px, visible (B, 14) bool, intrinsics None or (B, 3, 3)."""
+        return cls(joints_2d, visible, image_frame(joints_2d, visible, intrinsics))
+
     def take(self, rows: torch.Tensor) -> Query:
         """The poses `rows` (index into B)."""
         return Query(self.joints_2d[rows], self.visible[rows], self.frame.take(rows))
@@ -305,7 +313,7 @@ class Lifter:
 
             x, visible = stacked("joints_2d"), stacked("visible")
             k = None if inputs[rows[0]].intrinsics is None else stacked("intrinsics")
-            parts.append((rows, self._lift(Query(x, visible, image_frame(x, visible, k)), k)))
+            parts.append((rows, self._lift(Query.of(x, visible, k), k)))
         return LiftResult.gather(parts)
 
     def _lift(self, query: Query, placed_by: torch.Tensor | None) -> LiftResult:
@@ -341,7 +349,7 @@ class Lifter:
         x = joints_2d_batch(joints_2d).to(self.device)
         vis = visibility_batch(visible, len(x)).to(self.device)
         k = intrinsics_batch(intrinsics, len(x))
-        return Query(x, vis, image_frame(x, vis, None if k is None else k.to(self.device)))
+        return Query.of(x, vis, None if k is None else k.to(self.device))
 
     def problems(self, query: Query, sets: str | torch.Tensor = "scored") -> Problems:
         """The problems of query's B poses. sets: "scored", those `lift` scores

@@ -163,9 +163,8 @@ class Pipeline:
             part.timings = part.timings if k == 0 else {}  # the 2D stage's, counted once
             intrinsics = _intrinsics([people[i] for i in rows])
             camera = intrinsics if intrinsics is not None else _cameras([people[i] for i in rows])
-            lifted = self.lift_estimate(
-                part, intrinsics, iterations, camera, answer.evidence[answered]
-            )
+            people_answered = answer.score[answered], answer.evidence[answered]
+            lifted = self.lift_estimate(part, intrinsics, iterations, camera, people_answered)
             lifted.person_found = answer.found[answered]
             parts.append((torch.tensor(rows, dtype=torch.long), lifted))
         result = PipelineResult.gather(parts)
@@ -202,14 +201,15 @@ class Pipeline:
         intrinsics=None,
         iterations: int | None = None,
         camera=None,
-        evidence: torch.Tensor | None = None,
+        people: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> PipelineResult:
         """Everything after the 2D stage, on its result for B people: lets a caller run several
         configurations on one 2D estimate. intrinsics: optional (B, 3, 3), the camera the 2D
         poses were taken by; camera: optional (B, 3, 3), the intrinsics of the camera in whose
         coordinates to place the people (run passes those given, or a camera of each image's
-        size); without, root_position is NaN. evidence: (B, 3) their person_evidence (None: of
-        poses that no proposal found)."""
+        size); without, root_position is NaN. people: their person scores (B,) and what the
+        scores weigh (B, 3), as PeopleFinder.answer found them (None: NaN, for poses that were
+        not answered as people)."""
         iterations = iterations or self.config.iterations
         timings = {f"2d_{step}": 1000 * estimate.timings.get(step, 0.0) for step in STEPS_2D}
         if len(estimate.joints_2d) == 0:
@@ -238,8 +238,10 @@ class Pipeline:
             probability = self.joint_calibration(probability)
         timings["total"] = 1000 * (time.perf_counter() - t_start + estimate.timings.get("total", 0))
         joints_2d = x.cpu()
-        if evidence is None:
-            evidence = self.finder.evidence(estimate)
+        score, evidence = people or (
+            torch.full((len(joints_2d),), torch.nan),
+            torch.full((len(joints_2d), 3), torch.nan),
+        )
         focal = torch.full((len(joints_2d),), torch.nan)
         if camera is not None:
             focal = (camera[:, 0, 0] + camera[:, 1, 1]).float().cpu() / 2
@@ -259,7 +261,7 @@ class Pipeline:
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
             image_index=torch.arange(len(joints_2d)),
             box=torch.from_numpy(person_boxes(joints_2d.numpy())).float(),
-            score=self.finder.scores(evidence),
+            score=score.float(),
             score_evidence=evidence.float(),
             person_found=torch.ones(len(joints_2d), dtype=torch.bool),
         )

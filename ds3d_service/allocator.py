@@ -30,8 +30,8 @@ def find_jemalloc() -> str | None:
 
 
 def run_under_jemalloc(argv: list[str]) -> None:
-    """Replace this process by `python -m service ARGV` with jemalloc preloaded, when jemalloc is
-    installed and not loaded yet; return (doing nothing) otherwise."""
+    """Replace this process by `python -m ds3d_service ARGV` with jemalloc preloaded, when
+    jemalloc is installed and not loaded yet; return (doing nothing) otherwise."""
     if loaded_allocator() != "glibc":
         return
     library = find_jemalloc()

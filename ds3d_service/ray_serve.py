@@ -5,25 +5,22 @@ plain service (`ds3d-serve`) stays the default.
     serve run docker/ray-serve.yaml          (the same, from a Serve config file)
 
 `python -m ds3d_service.ray_serve` starts a local Ray (or joins `--address`), serves the app on
---host/--port (default 127.0.0.1:8000) and runs until Ctrl-C or SIGTERM. Every `ds3d-serve` flag
-and DS3D_* env var applies (`python -m service --help`) except those of uvicorn (max_connections)
-and torch_threads: each replica is one Ray actor of one CPU running torch on one thread.
-Replica bounds and backpressure: --min-replicas, --max-replicas, --target-ongoing-requests,
---max-ongoing-requests, --max-queued-requests (also DS3D_RAY_MIN_REPLICAS, ...).
-
-Each replica serves the app of `ds3d_service.app.create_app` (same routes, JSON errors, access
-guard, metrics), with a runtime whose lift and pose queues (`ServeQueue`) are ModelQueues
-(ds3d_service.deps) as the plain service's MicroBatchers are, but batch through `@serve.batch`
-methods (max_lift_batch_size / max_batch_size, max_wait_ms). A batch the engine refuses is
-rerun item by item, so one bad item fails only its own request.
-
-Overload answers 503 with Retry-After (retry_after_s) twice over: a replica holding
-max_lift_queue / max_queue items answers the service's JSON `overloaded`; past
-max_ongoing_requests per replica and max_queued_requests waiting in Ray's proxy, the proxy
-answers 503 itself, with Retry-After and a text body (Ray's, not JSON; the SDK retries either).
-Differences from the plain service: batches are first come first served (no round robin across
-callers; caller_queue_share is still enforced per replica), and each replica keeps its own
-/metrics and its own rate limits (rate_limit_rps applies per replica).
+--host/--port (default 127.0.0.1:8000) and runs until Ctrl-C or SIGTERM. Every `ds3d-serve` flag and
+DS3D_* env var applies (`python -m ds3d_service --help`) except those of uvicorn (max_connections)
+and torch_threads: each replica is one Ray actor of one CPU running torch on one thread. Replica
+bounds and backpressure: --min-replicas, --max-replicas, --target-ongoing-requests, --max-ongoing-
+requests, --max-queued-requests (also DS3D_RAY_MIN_REPLICAS, ...). Each replica serves the app of
+`ds3d_service.app.create_app` (same routes, JSON errors, access guard, metrics), with a runtime
+whose lift and pose queues (`ServeQueue`) are ModelQueues (ds3d_service.deps) as the plain service's
+MicroBatchers are, but batch through `@serve.batch` methods (max_lift_batch_size / max_batch_size,
+max_wait_ms). A batch the engine refuses is rerun item by item, so one bad item fails only its own
+request. Overload answers 503 with Retry-After (retry_after_s) twice over: a replica holding
+max_lift_queue / max_queue items answers the service's JSON `overloaded`; past max_ongoing_requests
+per replica and max_queued_requests waiting in Ray's proxy, the proxy answers 503 itself, with
+Retry-After and a text body (Ray's, not JSON; the SDK retries either). Differences from the plain
+service: batches are first come first served (no round robin across callers; caller_queue_share is
+still enforced per replica), and each replica keeps its own /metrics and its own rate limits
+(rate_limit_rps applies per replica).
 """
 
 from __future__ import annotations
@@ -301,7 +298,8 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, Settings]:
         prog="python -m ds3d_service.ray_serve",
         description="Serve the ds3d HTTP API with Ray Serve: replicas of one CPU and one torch "
         "thread, autoscaled between the bounds below.",
-        epilog="Every ds3d-serve flag and DS3D_* env var applies too (python -m service --help), "
+        epilog="Every ds3d-serve flag and DS3D_* env var applies too "
+        "(python -m ds3d_service --help), "
         "but torch_threads (1 per replica) and uvicorn's own (max_connections).",
     )
     parser.add_argument("--address", help="Ray cluster to join (default: start a local one)")

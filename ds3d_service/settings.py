@@ -6,17 +6,35 @@ field's flag (ds3d_service/__main__.py).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from ds3d.util.machine import usable_cpus, usable_memory_mb
 
-def cpu_count_up_to_2() -> int:
-    """The default of torch_threads."""
-    return min(2, os.cpu_count() or 1)
+# What sizes the default worker processes: the resident memory of one (its own Pipeline, measured
+# at 0.80 GB after LSP images at 2 workers, docs/service-results.md) and of the service's own
+# process (its lifter for /v1/lift and the web app, 0.72 GB), each with a margin.
+WORKER_MB = 1024
+MAIN_MB = 1024
+
+
+def default_workers(settings: dict) -> int:
+    """The workers setting's default, from the settings read before it (device): one per
+    usable core, as many as the memory holds beside the service's own process; 1 on a GPU,
+    which one process keeps busy."""
+    if settings["device"] != "cpu":
+        return 1
+    fits = int((usable_memory_mb() - MAIN_MB) // WORKER_MB)
+    return max(1, min(usable_cpus(), fits))
+
+
+def default_torch_threads(settings: dict) -> int:
+    """The torch_threads setting's default, from the settings read before it (workers): the
+    usable cores shared among the workers, at most 2 each, at least 1."""
+    return max(1, min(2, usable_cpus() // settings["workers"]))
 
 
 class Settings(BaseSettings):
@@ -83,22 +101,25 @@ class Settings(BaseSettings):
         "restarts the replica (a thread stuck in a batch cannot be stopped from within). Well "
         "above the longest batch: max_batch_size images of the slowest kind.",
     )
-    torch_threads: int = Field(
-        default_factory=cpu_count_up_to_2,
-        ge=1,
-        description="torch.set_num_threads of the one model thread: the 2D stage splits each "
-        "batch across that many threads, the 3D stage's ops use them within. Two pay on two "
-        "cores for one process (docs/tuning.md, service); replicas, one per core, set 1 "
-        "(docker/docker-compose.yml).",
-    )
     workers: int = Field(
-        1,
+        default_factory=default_workers,
         ge=1,
         le=64,
-        description="Processes of /v1/pose's pipeline, each its own models (about 1 GB) with "
-        "torch_threads threads, that split each batch (ds3d.runners.workers). On a CPU, processes "
-        "give more images/s than as many threads: two of one thread each on two cores. 1: the "
-        "pipeline runs on the model thread itself.",
+        description="Processes of /v1/pose's pipeline, each its own models (about 0.8 GB) with "
+        "torch_threads threads, that split each batch (ds3d.runners.workers). On a CPU, "
+        "processes give more images/s than as many threads (docs/service-results.md, worker "
+        "processes). 1: the pipeline runs on the model thread itself. Default: one per usable "
+        "core (the CPU affinity within a container's quota), as many as the available memory "
+        "holds beside the service's own (ds3d_service.settings.WORKER_MB, MAIN_MB); 1 on a "
+        "GPU.",
+    )
+    torch_threads: int = Field(
+        default_factory=default_torch_threads,
+        ge=1,
+        description="torch.set_num_threads of each process's model thread: the 2D stage splits "
+        "each batch across that many threads, the 3D stage's ops use them within. Default: the "
+        "usable cores shared among the workers, at most 2 each (a third thread pays little: "
+        "docs/tuning.md, service).",
     )
     max_image_bytes: int = Field(
         10 * 1024 * 1024,

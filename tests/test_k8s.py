@@ -48,7 +48,10 @@ def test_the_deployment_probes_and_sizes_each_pod_as_the_service_expects():
     assert container["readinessProbe"]["httpGet"]["path"] == "/readyz"
     assert container["livenessProbe"]["httpGet"]["path"] == "/healthz"
     env = {e["name"]: e for e in container["env"]}
-    assert env["DS3D_TORCH_THREADS"]["value"] == "1" and env["OMP_NUM_THREADS"]["value"] == "1"
+    # the CPU limit sizes the pod's processes and threads (ds3d_service.settings): one CPU, one
+    # process of one thread, which no env var overrides
+    assert container["resources"]["limits"]["cpu"] == "1"
+    assert not {"DS3D_WORKERS", "DS3D_TORCH_THREADS"} & set(env)
     assert "secretKeyRef" in env["DS3D_API_KEYS"]["valueFrom"]  # closed: keys from a secret
     assert container["resources"]["requests"]["cpu"] == container["resources"]["limits"]["cpu"]
     port = container["ports"][0]["name"]

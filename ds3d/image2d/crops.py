@@ -54,6 +54,14 @@ def crop_region(
     return (cx0, cy0, cx1, cy1), extent
 
 
+def image_share(box, width: int, height: int, params: EstimatorParams) -> float:
+    """The share of a (width, height) px image's area that the crop around a person box
+    (crop_region) holds, in [0, 1]."""
+    (x0, y0, x1, y1), _ = crop_region(box, width, height, params)
+    inside = (min(x1, width) - max(x0, 0)) * (min(y1, height) - max(y0, 0))
+    return inside / (width * height)
+
+
 def working_crops(images: list[np.ndarray], bboxes, params: EstimatorParams) -> list[Crop]:
     """Base scale per image (H_i, W_i, 3) uint8 RGB: from its person box (x0, y0, x1, y1) px, as
     checked where it entered (ds3d.inputs), if given, else from the image size."""

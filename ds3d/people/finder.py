@@ -20,7 +20,7 @@ import torch
 
 from ds3d.boxes import iou, person_boxes, suppress
 from ds3d.errors import DataFormatError
-from ds3d.image2d.crops import crop_region
+from ds3d.image2d.crops import image_share
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.jointnet import ScaledLogits
 from ds3d.image2d.result import Estimate2D
@@ -116,7 +116,8 @@ class PeopleFinder:
             out += proposed
             # The whole image is one person's crop: where the search found several people, its
             # one pose would join them.
-            if len(strong) <= 1 and not any(self._covers(box, width, height) for box in strong):
+            shares = [image_share(box, width, height, self.estimator.params) for box in strong]
+            if len(strong) <= 1 and not any(s >= self.params.whole_image_cover for s in shares):
                 whole = np.array([0, 0, width, height], np.float32)
                 out.append(Candidate(i, whole, False, False, found.levels))
         return out
@@ -147,13 +148,6 @@ class PeopleFinder:
             for k, kind in chosen
         ]
 
-    def _covers(self, box: np.ndarray, width: int, height: int) -> bool:
-        """Whether the crop around a person box (crops.crop_region) holds at least
-        whole_image_cover of a (width, height) px image's area."""
-        (x0, y0, x1, y1), _ = crop_region(box, width, height, self.estimator.params)
-        inside = (min(x1, width) - max(x0, 0)) * (min(y1, height) - max(y0, 0))
-        return inside >= self.params.whole_image_cover * width * height
-
     def evidence(
         self, estimate: Estimate2D, candidates: Sequence[Candidate] | None = None
     ) -> torch.Tensor:
@@ -178,41 +172,55 @@ class PeopleFinder:
         proposal is a person the search was unsure of, answered where nobody found stands, not
         as a second reading of them."""
         evidence = self.evidence(estimate, candidates)
-        # on the CPU: a few numbers per candidate, settled with NumPy (a box given is answered
-        # whatever its score, and alone in its image)
-        score = self.scores(evidence).nan_to_num(1.0)
+        score = self.scores(evidence)
+        # On the CPU: a few numbers per candidate, settled with NumPy. A box given is answered
+        # whatever its score, alone in its image (a model without a person score, whose scores
+        # are NaN, answers only boxes given).
+        rank = score.nan_to_num(1.0)
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)
         given = torch.tensor([c.given for c in candidates])
-        floor = torch.tensor([item.min_score for item in inputs], dtype=score.dtype)
-        found = given | (score >= floor[image_index])
+        floor = torch.tensor([item.min_score for item in inputs], dtype=rank.dtype)
+        found = given | (rank >= floor[image_index])
         poses = estimate.joints_2d.cpu().numpy()
+        weak = torch.tensor([c.weak for c in candidates], dtype=torch.bool)
         rows = [torch.zeros(0, dtype=torch.long)]
         for image in image_index.unique().tolist():
             own = torch.nonzero(image_index == image).view(-1)
             if inputs[image].people == "best":  # the suppression keeps the best first: it alone
-                rows.append(own[score[own].argmax()].view(1))
-                continue
-            weak = torch.tensor([candidates[k].weak for k in own.tolist()])
-            answered = self._distinct(poses, own[~weak].numpy(), score, found)
-            boxes = person_boxes(poses)
-            for k in own[weak][score[own[weak]].argsort(descending=True)].tolist():
-                apart = (
-                    not answered or iou(boxes[k], boxes[answered]).max() <= self.params.weak_overlap
-                )
-                if found[k] and apart:
-                    answered.append(k)
-            answered.sort(key=lambda k: -float(score[k]))
-            rows.append(torch.tensor(answered, dtype=torch.long))
+                rows.append(own[rank[own].argmax()].view(1))
+            else:
+                rows.append(self._everyone(poses, own, weak, rank, found))
         return Answer(torch.cat(rows), found, score, evidence)
 
+    def _everyone(
+        self,
+        poses: np.ndarray,
+        own: torch.Tensor,
+        weak: torch.Tensor,
+        rank: torch.Tensor,
+        found: torch.Tensor,
+    ) -> torch.Tensor:
+        """The candidates `own` (one image's, of those posed as poses (C, 14, 2) px) answered
+        when the image asks for every person, best first: the strong ones that _distinct keeps,
+        then the weak ones found apart from them. weak, rank, found: (C,) of all candidates."""
+        answered = self._distinct(poses, own[~weak[own]].numpy(), rank, found)
+        boxes = person_boxes(poses)
+        unsure = own[weak[own]]
+        for k in unsure[rank[unsure].argsort(descending=True)].tolist():
+            overlap = iou(boxes[k], boxes[answered]).max() if answered else 0.0
+            if found[k] and overlap <= self.params.weak_overlap:
+                answered.append(k)
+        answered.sort(key=lambda k: -float(rank[k]))
+        return torch.tensor(answered, dtype=torch.long)
+
     def _distinct(
-        self, poses: np.ndarray, rows: np.ndarray, score: torch.Tensor, found: torch.Tensor
+        self, poses: np.ndarray, rows: np.ndarray, rank: torch.Tensor, found: torch.Tensor
     ) -> list[int]:
         """Of the candidates `rows` (posed as poses[rows], (R, 14, 2) px), the found ones that
-        non-maximum suppression keeps: no two of them one person."""
+        non-maximum suppression by rank keeps: no two of them one person."""
         params, own = self.params, poses[rows]
         shared = shared_joints(own, params.same_person_radius)
         on_bones = joints_on_bones(own, params.on_bones_radius)
         same = (shared >= params.same_person_joints) | (on_bones >= params.on_bones_joints)
-        kept = rows[suppress(person_boxes(own), score[rows].numpy(), params.overlap, same | same.T)]
+        kept = rows[suppress(person_boxes(own), rank[rows].numpy(), params.overlap, same | same.T)]
         return kept[found[kept].numpy()].tolist()

@@ -215,7 +215,15 @@ def test_the_access_log_names_the_key_by_its_id_never_the_key(keyed, caplog):
     headers = bearer(KEY_A) | {"X-Request-ID": "log-check-1"}
     httpx.post(f"{keyed}/v1/lift?people=all", json=LIFT, headers=headers)
     httpx.post(f"{keyed}/v1/lift", json=LIFT, headers=bearer("wrong-key-0123456789abc"))
-    lines = [r.getMessage() for r in caplog.records if r.name == "ds3d_service.access.rules"]
+
+    def logged() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.name == "ds3d_service.access.rules"]
+
+    # The server's thread logs a request once it has answered: wait for the second line.
+    deadline = time.monotonic() + 10
+    while len(logged()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    lines = logged()
     mine = [line for line in lines if line.startswith("log-check-1 ")]
     assert mine and f"key:{key_id(KEY_A)}" in mine[0] and "people=all" not in mine[0]
     text = "\n".join(lines)

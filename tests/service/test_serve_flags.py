@@ -42,9 +42,10 @@ def test_help_lists_every_setting(capsys):
     assert exc.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
     for name, field in FIELDS.items():
+        factory = field.default_factory
         default = (
-            f"(default factory: {field.default_factory.__name__})"
-            if field.default_factory is not None
+            f"(default factory: {getattr(factory, '__name__', '')})"
+            if factory is not None
             else f"(default: {'null' if field.default is None else field.default})"
         )
         description = " ".join(field.description.split())
