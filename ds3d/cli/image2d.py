@@ -96,6 +96,17 @@ def register(commands, evals, benches) -> None:
     add_set_option(j, "a TrainConfig jointnet_* field to train with (e.g. jointnet_epochs=40)")
     j.set_defaults(func=cmd_train_jointnet)
 
+    q = commands.add_parser(
+        "quantize-jointnet",
+        help="the int8 copy of a 2D model's joint network that the people search runs on a CPU",
+        description="Calibrated on the search's levels of LSP train's first images (never held "
+        "out) and written into the model (jointnet_int8.pt; ds3d.image2d.quantized).",
+    )
+    q.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
+    q.add_argument("--images", type=int, default=100, help="LSP train images to calibrate on")
+    q.add_argument("--threads", type=int, default=2)
+    q.set_defaults(func=cmd_quantize_jointnet)
+
     e = evals.add_parser("lsp", help="PCK@0.2 on LSP test (im1001-im2000)")
     e.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
     e.add_argument(
@@ -205,4 +216,13 @@ def cmd_eval_lsp(args) -> int:
     if args.write_manifest:
         key = "lsp_test" if args.limit is None else f"lsp_test_first_{args.limit}"
         record_metrics(args.model, key, result)
+    return 0
+
+
+def cmd_quantize_jointnet(args) -> int:
+    from ds3d.training.quantize import quantize_model
+
+    torch.set_num_threads(args.threads)
+    manifest = quantize_model(args.model, args.images)
+    print(json.dumps(manifest["jointnet_int8_calibration"]))
     return 0

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.buckets import bucket
@@ -79,6 +80,7 @@ class PoseEstimator2D:
         params: EstimatorParams,
         facing: FacingNet | None = None,
         jointnet: JointNet | None = None,
+        jointnet_int8: nn.Module | None = None,
     ):
         if params.observer_labels and facing is None and jointnet is None and layers:
             raise DataFormatError("observer-centric labels need a facing model or joint network")
@@ -87,6 +89,7 @@ class PoseEstimator2D:
         self.params = params
         self.facing = facing
         self.jointnet = jointnet
+        self.jointnet_int8 = jointnet_int8  # the CPU's copy (ds3d.image2d.quantized)
         self._layers_of: dict[int, list[Forest]] = {}  # the layers cut short, per tree count
 
     @property
@@ -97,14 +100,24 @@ class PoseEstimator2D:
     def to(self, device: torch.device | str) -> PoseEstimator2D:
         """The estimator with every part of its model on `device`: the images go there once
         their crops are resized (on the CPU, with OpenCV), and every step of estimate() runs
-        there (and of the search for people, ds3d.people.search)."""
+        there (and of the search for people, ds3d.people.search; off the CPU with the float
+        joint network, the int8 copy being the CPU's)."""
+        on_cpu = torch.device(device).type == "cpu"
         return PoseEstimator2D(
             [forest.to(device) for forest in self.layers],
             self.mixtures.to(device),
             self.params,
             None if self.facing is None else self.facing.to(device),
             None if self.jointnet is None else self.jointnet.to(device),
+            self.jointnet_int8 if on_cpu else None,
         )
+
+    @property
+    def network(self) -> nn.Module | None:
+        """The joint network that runs: the int8 copy where the model has one and this machine
+        runs it faster (ds3d.image2d.quantized), else the float one (None: the model has
+        none)."""
+        return self.jointnet_int8 if self.jointnet_int8 is not None else self.jointnet
 
     @classmethod
     def load(cls, model_dir: Path | str | None = None, device: str = "cpu") -> PoseEstimator2D:
@@ -113,7 +126,14 @@ class PoseEstimator2D:
         malformed."""
         model_dir = Path(model_dir) if model_dir is not None else MODELS_DIR / "image2d"
         model = load_model(require_models(model_dir))
-        estimator = cls(model.layers, model.mixtures, model.params, model.facing, model.jointnet)
+        estimator = cls(
+            model.layers,
+            model.mixtures,
+            model.params,
+            model.facing,
+            model.jointnet,
+            model.jointnet_int8,
+        )
         return estimator if torch.device(device).type == "cpu" else estimator.to(device)
 
     def scales(self) -> list[float]:
@@ -179,7 +199,7 @@ class PoseEstimator2D:
         timings of the steps (seconds)."""
         p = self.params
         timings = {"features": 0.0, "traversal": 0.0, "jointnet": 0.0, "psm": 0.0}
-        with_net = self.jointnet is not None and p.jointnet_weight > 0
+        with_net = self.network is not None and p.jointnet_weight > 0
         full = self._first_trees(p.trees)  # the full pass's layers
         if len(scales) > 1 and p.scale_choice == "network" and with_net:
             choice, base, logits = self._network_scales(crops, scales, timings)
@@ -244,7 +264,7 @@ class PoseEstimator2D:
         maps at the chosen scale are worth half a point, docs/tuning.md). A crop with views
         (the search's maps of its image) reads its base maps off the nearest (read_logits)
         rather than running the network."""
-        p, jointnet = self.params, self.jointnet
+        p, jointnet = self.params, self.network
         assert jointnet is not None, "the scales are chosen by the joint network"
         base = min(range(len(scales)), key=lambda k: abs(math.log(scales[k])))
         t0 = time.perf_counter()
@@ -362,7 +382,7 @@ class PoseEstimator2D:
         there). Returns (rows (b,) long, the group's _GroupPose)."""
         group = [images[i] for i in rows]
         channels, sizes = group_channels(group, timings, self.device)
-        jointnet = self.jointnet if final and p.jointnet_weight > 0 else None
+        jointnet = self.network if final and p.jointnet_weight > 0 else None
         with_net = jointnet is not None
         cells = None
         if jointnet is not None:

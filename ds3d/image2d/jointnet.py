@@ -158,7 +158,7 @@ def fold_batch_norms(net: M) -> M:
     return net
 
 
-def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
+def padded_logits(net: nn.Module, lab: Tensor) -> Tensor:
     """The network's logits of images inside a MARGIN px border of zeros, as training windows
     extend past their images (its effect: docs/tuning.md): lab (B, 3, H, W) Lab / 100 ->
     (B, 14, ceil((H + 2 MARGIN) / STRIDE), ceil((W + 2 MARGIN) / STRIDE)) float32. The network
@@ -167,18 +167,23 @@ def padded_logits(net: JointNet, lab: Tensor) -> Tensor:
     its device: bfloat16 as load_jointnet leaves it on a CPU that computes it (CPU_BFLOAT16), or
     a float32 network under bfloat16 autocast there, as trained; returned on its device."""
     height, width = lab.shape[-2:]
-    return _crop_logits(_run(net, _net_input(lab)), height, width).contiguous()
+    padded = _run(net, _net_input(lab, MARGIN, NET_BUCKET_STEPS))
+    return _crop_logits(padded, height, width, MARGIN).contiguous()
 
 
-def padded_logits_each(net: JointNet, labs: Sequence[Tensor]) -> list[Tensor]:
+def padded_logits_each(
+    net: nn.Module, labs: Sequence[Tensor], margin: int = MARGIN, steps: int = NET_BUCKET_STEPS
+) -> list[Tensor]:
     """padded_logits of each of N images of any sizes, labs (1, 3, H_i, W_i) Lab / 100 -> N
-    (1, 14, ceil((H_i + 2 MARGIN) / STRIDE), ceil((W_i + 2 MARGIN) / STRIDE)). The images whose
-    padded input is of one shape (one bucket) go through the network in one call, at most
+    (1, 14, ceil((H_i + 2 margin) / STRIDE), ceil((W_i + 2 margin) / STRIDE)), inside `margin`
+    px of zeros and padded to buckets of `steps` per octave (a caller whose images carry their
+    own border of zeros asks for less; margin a multiple of STRIDE). The images whose padded
+    input is of one shape (one bucket) go through the network in one call, at most
     NET_BATCH_PIXELS px of input a call: batched, the network costs a fraction of its cost one
     image at a time (16 inputs of 144 x 112 px on one thread: 1.9 against 4.9 ms an image, of
     96 x 64: 0.8 against 3.6 ms). An image's maps are those it gets alone,
     up to the float rounding of a larger batch: it sees its own zeros, not its neighbours'."""
-    inputs = [_net_input(lab) for lab in labs]
+    inputs = network_inputs(labs, margin, steps)
     found: dict[int, Tensor] = {}
     for (height, width), rows in group_rows(x.shape[-2:] for x in inputs).items():
         per_call = max(1, NET_BATCH_PIXELS // (height * width))
@@ -186,45 +191,55 @@ def padded_logits_each(net: JointNet, labs: Sequence[Tensor]) -> list[Tensor]:
             chunk = rows[start : start + per_call]
             logits = _run(net, torch.cat([inputs[i] for i in chunk]))
             for i, maps in zip(chunk, logits, strict=True):
-                found[i] = _crop_logits(maps[None], *labs[i].shape[-2:]).contiguous()
+                h, w = labs[i].shape[-2:]
+                found[i] = _crop_logits(maps[None], h, w, margin).contiguous()
     return [found[i] for i in range(len(labs))]
 
 
-def _net_input(lab: Tensor) -> Tensor:
-    """lab (B, 3, H, W) -> the network's input: a MARGIN px border of zeros, then zeros below
-    and right up to the bucket of each side (padded_logits)."""
+def network_inputs(labs: Sequence[Tensor], margin: int, steps: int) -> list[Tensor]:
+    """labs (B, 3, H, W) -> the network's inputs (padded_logits_each): each inside a `margin` px
+    border of zeros, then zeros below and right up to the bucket of each side at `steps` per
+    octave."""
+    return [_net_input(lab, margin, steps) for lab in labs]
+
+
+def _net_input(lab: Tensor, margin: int, steps: int) -> Tensor:
+    """network_inputs of one lab."""
     height, width = lab.shape[-2:]
-    right = bucket(width + 2 * MARGIN, NET_BUCKET_STEPS) - width - MARGIN
-    bottom = bucket(height + 2 * MARGIN, NET_BUCKET_STEPS) - height - MARGIN
-    return F.pad(lab, (MARGIN, right, MARGIN, bottom))
+    right = bucket(width + 2 * margin, steps) - width - margin
+    bottom = bucket(height + 2 * margin, steps) - height - margin
+    return F.pad(lab, (margin, right, margin, bottom))
 
 
-def _run(net: JointNet, padded: Tensor) -> Tensor:
+def _run(net: nn.Module, padded: Tensor) -> Tensor:
     """The network on its padded input (B, 3, H', W') in its dtype and on its device (as
-    padded_logits) -> (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on its device."""
+    padded_logits; an int8 network, ds3d.image2d.quantized, on float32 input on the CPU) ->
+    (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on its device."""
     weight = next(net.parameters(), padded)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
+    autocast &= not getattr(net, "int8", False)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
         padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)
         return net(padded).float()
 
 
-def _crop_logits(logits: Tensor, height: int, width: int) -> Tensor:
-    """The cells of a (height, width) image's padded_logits out of the network's output on its
-    bucket-padded input."""
-    return logits[..., : -(-(height + 2 * MARGIN) // STRIDE), : -(-(width + 2 * MARGIN) // STRIDE)]
+def _crop_logits(logits: Tensor, height: int, width: int, margin: int) -> Tensor:
+    """The cells of a (height, width) image's logits inside `margin` px of zeros out of the
+    network's output on its bucket-padded input."""
+    return logits[..., : -(-(height + 2 * margin) // STRIDE), : -(-(width + 2 * margin) // STRIDE)]
 
 
 @dataclass(frozen=True)
 class ScaledLogits:
-    """padded_logits (1, 14, h, w) of an image resized by `scale` (resized px per image px,
-    (x, y)) with a border of `border` px of zeros on every side: the search's levels, off which
-    the 2D stage reads its crops' maps (read_logits)."""
+    """The network's logits (1, 14, h, w) of an image resized by `scale` (resized px per image
+    px, (x, y)), whose input reached `border` px of zeros past the resized image on every side
+    (MARGIN: padded_logits'; the search's levels carry their own): the search's levels, off
+    which the 2D stage reads its crops' maps (read_logits)."""
 
     logits: Tensor
     scale: tuple[float, float]
-    border: int = 0
+    border: int = MARGIN
 
 
 def read_logits(
@@ -253,17 +268,17 @@ def resampled_logits(
     source: Tensor, scale: tuple[float, float], offset: tuple[float, float], height: int, width: int
 ) -> Tensor:
     """What padded_logits would be for a (height, width) image, read bilinearly off `source`,
-    the padded_logits (1, 14, h', w') of another view of the same scene in which this image's
-    px (x, y) lies at px scale * (x, y) + offset (past its last cell, the last) -> (1, 14,
-    ceil((height + 2 MARGIN) / STRIDE), ceil((width + 2 MARGIN) / STRIDE)). The network sees a
-    person alike within the zoom it was trained with (about 0.7 to 1.3), so one view's maps
-    serve another's scale in that range."""
+    the logits (1, 14, h', w') of another view of the same scene, in whose input (px from its
+    first cell's centre) this image's px (x, y) lies at scale * (x, y) + offset (past its last
+    cell, the last) -> (1, 14, ceil((height + 2 MARGIN) / STRIDE), ceil((width + 2 MARGIN) /
+    STRIDE)). The network sees a person alike within the zoom it was trained with (about 0.7
+    to 1.3), so one view's maps serve another's scale in that range."""
     oh, ow = source.shape[-2:]
     axes = []
     for size, cells, k in ((width, ow, 0), (height, oh, 1)):
         cells_out = -(-(size + 2 * MARGIN) // STRIDE)
         px = torch.arange(cells_out, dtype=torch.float32, device=source.device) * STRIDE - MARGIN
-        cell = (scale[k] * px + offset[k] + MARGIN) / STRIDE  # source cells
+        cell = (scale[k] * px + offset[k]) / STRIDE  # source cells
         axes.append(cell / max(cells - 1, 1) * 2 - 1)
     xs, ys = axes
     grid = torch.stack([xs[None, :].expand(len(ys), -1), ys[:, None].expand(-1, len(xs))], -1)[None]
@@ -276,18 +291,19 @@ def logits_to_grid(
     width: int,
     stride: int,
     mirrored: bool = False,
+    margin: int = MARGIN,
 ) -> Tensor:
-    """padded_logits of (height, width) images -> their values on the grid of
-    cascade.grid_positions(height, width, stride): (B, 14, ceil(height / stride),
-    ceil(width / stride)). Grid cell (i, j) is pixel (stride * i, stride * j), so output cell
-    ((stride * i + MARGIN) / STRIDE, (stride * j + MARGIN) / STRIDE): read bilinearly (past
-    the last output cell, the last). mirrored: the logits are of the images mirrored left to
-    right; they are read at the mirrored pixels, left and right swapped, so that they describe
-    the images themselves."""
+    """The network's logits of (height, width) images inside `margin` px of zeros (padded_logits
+    and MARGIN, by default) -> their values on the grid of cascade.grid_positions(height, width,
+    stride): (B, 14, ceil(height / stride), ceil(width / stride)). Grid cell (i, j) is pixel
+    (stride * i, stride * j), so output cell ((stride * i + margin) / STRIDE, (stride * j +
+    margin) / STRIDE): read bilinearly (past the last output cell, the last). mirrored: the
+    logits are of the images mirrored left to right; they are read at the mirrored pixels, left
+    and right swapped, so that they describe the images themselves."""
     gh, gw = -(-height // stride), -(-width // stride)
-    ys = (torch.arange(gh, dtype=torch.float32, device=logits.device) * stride + MARGIN) / STRIDE
+    ys = (torch.arange(gh, dtype=torch.float32, device=logits.device) * stride + margin) / STRIDE
     px = torch.arange(gw, dtype=torch.float32, device=logits.device) * stride
-    xs = ((width - 1 - px if mirrored else px) + MARGIN) / STRIDE
+    xs = ((width - 1 - px if mirrored else px) + margin) / STRIDE
     oh, ow = logits.shape[-2:]
     grid = torch.stack(
         [
@@ -302,7 +318,7 @@ def logits_to_grid(
 
 
 def logits_on_grid(
-    net: JointNet,
+    net: nn.Module,
     lab: Tensor,
     stride: int,
     flip_test: bool = False,
@@ -342,7 +358,7 @@ def unaries_from_logits(logits: Tensor) -> Tensor:
 
 
 def jointnet_unaries(
-    net: JointNet,
+    net: nn.Module,
     channels: Tensor,
     sizes: list[tuple[int, int]],
     stride: int,

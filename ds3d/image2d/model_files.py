@@ -2,9 +2,10 @@
 
 A model directory holds manifest.json and the files it names: one gzip-compressed forest per
 cascade layer (forest1.pt.gz, ...), the PSM's mixtures (psm.pt), and the joint network
-(jointnet.pt) and/or the facing CNN (facing.pt). The manifest records the parameters
-(EstimatorParams, flat), the training configuration and seed, the data and its terms, the
-training time and the measured metrics.
+(jointnet.pt; its int8 copy for the people search, jointnet_int8.pt, ds3d.image2d.quantized)
+and/or the facing CNN (facing.pt). The manifest records the parameters (EstimatorParams,
+flat), the training configuration and seed, the data and its terms, the training time and the
+measured metrics.
 """
 
 from __future__ import annotations
@@ -12,11 +13,13 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, cast
 
 import torch
+from torch import nn
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.facing import FacingNet
@@ -24,21 +27,25 @@ from ds3d.image2d.forest import Forest
 from ds3d.image2d.jointnet import CPU_BFLOAT16, JointNet, JointNetShape, fold_batch_norms
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
+from ds3d.image2d.quantized import int8_available, int8_jointnet
 
 NET_FILES = {"facing": "facing.pt", "jointnet": "jointnet.pt"}
 PSM_FILE = "psm.pt"
+INT8_FILE = "jointnet_int8.pt"
 
 
 @dataclass
 class Model2D:
     """The parts of a trained 2D model: the cascade's layers, the PSM's mixtures, the
-    parameters, and the networks it has (None where it has not)."""
+    parameters, and the networks it has (None where it has not; the int8 joint network also
+    where this machine would not run it faster, quantized.int8_available)."""
 
     layers: list[Forest]
     mixtures: PairwiseMixtures
     params: EstimatorParams
     facing: FacingNet | None = None
     jointnet: JointNet | None = None
+    jointnet_int8: nn.Module | None = None
 
 
 def load_model(model_dir: Path) -> Model2D:
@@ -51,14 +58,21 @@ def load_model(model_dir: Path) -> Model2D:
         mixtures = PairwiseMixtures.from_state_dict(state)
         facing = manifest.get("facing")
         facing = load_facing(model_dir / facing) if facing else None
-        jointnet = manifest.get("jointnet")
+        jointnet, int8 = manifest.get("jointnet"), manifest.get("jointnet_int8")
         if jointnet:
             shape = manifest["jointnet_shape"]
             shape = JointNetShape(tuple(shape["widths"]), tuple(shape["blocks"]))
             jointnet = load_jointnet(model_dir / jointnet, shape)
+        if int8 and jointnet and int8_available():
+            with warnings.catch_warnings():  # torch's notices on quantized tensors' storage
+                warnings.simplefilter("ignore")
+                state = torch.load(model_dir / int8, weights_only=True)
+            int8 = int8_jointnet(jointnet, state)
+        else:
+            int8 = None
     except (KeyError, TypeError, OSError, RuntimeError) as exc:
         raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
-    return Model2D(layers, mixtures, params, facing, jointnet)
+    return Model2D(layers, mixtures, params, facing, jointnet, int8)
 
 
 def save_model(
@@ -105,9 +119,21 @@ def replace_jointnet(
     manifest = read_manifest(model_dir)
     torch.save(state, model_dir / NET_FILES["jointnet"])
     manifest["jointnet"] = NET_FILES["jointnet"]
+    manifest["jointnet_int8"] = None  # made of the network replaced: quantize the new one
     manifest["jointnet_shape"] = asdict(shape)
     manifest["train_config"] = train_config
     manifest["train_seconds"]["jointnet"] = round(seconds, 1)
+    write_manifest(model_dir, manifest)
+    return manifest
+
+
+def save_int8_jointnet(model_dir: Path, quantized: nn.Module, calibration: dict) -> dict:
+    """Put the int8 copy of a model's joint network into it (ds3d.image2d.quantized), with what
+    it was calibrated on. Returns the manifest."""
+    manifest = read_manifest(model_dir)
+    torch.save(quantized.state_dict(), model_dir / INT8_FILE)
+    manifest["jointnet_int8"] = INT8_FILE
+    manifest["jointnet_int8_calibration"] = calibration
     write_manifest(model_dir, manifest)
     return manifest
 

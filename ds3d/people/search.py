@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from ds3d.boxes import person_boxes, suppress
 from ds3d.errors import DataFormatError
@@ -31,7 +32,6 @@ from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import (
     STRIDE,
-    JointNet,
     ScaledLogits,
     logits_to_grid,
     padded_logits_each,
@@ -44,6 +44,10 @@ from ds3d.util.threads import map_on_threads, split_rows
 # The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
 # was trained with (ds3d.training.jointnet.ZOOM).
 LEVEL_REACH = (0.7, 1.3)
+# The levels' network input is padded to buckets of this many sizes per octave of each side
+# (jointnet.padded_logits_each): twice the crops' (jointnet.NET_BUCKET_STEPS), a twentieth
+# fewer px for a few more input shapes.
+SEARCH_BUCKET_STEPS = 8
 
 
 @dataclass(frozen=True)
@@ -166,7 +170,7 @@ def propose(
     of the module docstring, the images split over torch.get_num_threads() threads as in
     PoseEstimator2D.estimate, on the estimator's device. Raises DataFormatError for a model
     without a joint network."""
-    jointnet = estimator.jointnet
+    jointnet = estimator.network
     if jointnet is None:
         raise DataFormatError("the search for people needs the joint network")
 
@@ -179,7 +183,7 @@ def propose(
 
 
 def _propose(
-    net: JointNet,
+    net: nn.Module,
     mixtures: PairwiseMixtures,
     images: list[np.ndarray],
     model: EstimatorParams,
@@ -189,31 +193,20 @@ def _propose(
     (jointnet.padded_logits_each) and their PSMs in groups of one grid shape, so that neither
     runs one small level at a time. model: the 2D model's parameters (canonical_extent, px of a
     person at the working scale; unary_weight, the PSM's weight on its unaries)."""
-    canonical_extent, unary_weight = model.canonical_extent, model.unary_weight
     pool = max(params.psm_stride // STRIDE, 1)
-    device = next(net.parameters()).device
-    levels = []  # (image index, the image resized to the level)
-    for i, image in enumerate(images):
-        for extent in level_extents(image.shape[0], params):
-            resized = resize_image(image, canonical_extent / extent)
-            if min(resized.shape[:2]) >= 2 * STRIDE * pool:  # else smaller than a few PSM cells
-                levels.append((i, resized))
-    # The levels reach `beyond` px past the image's edges, whole network cells of zeros.
-    beyond = round(params.beyond_edge * canonical_extent / STRIDE) * STRIDE
-    labs = [
-        F.pad(lab_channels(torch.from_numpy(r).to(device)[None]), (beyond,) * 4) for _, r in levels
-    ]
-    logits = padded_logits_each(net, labs)
+    levels, labs, beyond = level_inputs(images, model, params, mixtures.mean.device)
+    logits = padded_logits_each(net, labs, margin=beyond, steps=SEARCH_BUCKET_STEPS)
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
         grid = logits_to_grid(
-            lg, resized.shape[0] + 2 * beyond, resized.shape[1] + 2 * beyond, STRIDE
+            lg, resized.shape[0] + 2 * beyond, resized.shape[1] + 2 * beyond, STRIDE, margin=0
         )
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's reach are -inf: no root or joint can score there.
         rows, cols = grid.shape[-2:]
         grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
-    found = _level_people([g * unary_weight for g in grids], mixtures, STRIDE * pool, params)
+    unaries = [g * model.unary_weight for g in grids]
+    found = _level_people(unaries, mixtures, STRIDE * pool, params)
     poses: list[list[np.ndarray]] = [[] for _ in images]
     scores: list[list[np.ndarray]] = [[] for _ in images]
     views: list[list[ScaledLogits]] = [[] for _ in images]
@@ -227,6 +220,30 @@ def _propose(
         poses[i].append(pose[shown])
         scores[i].append(score[shown])
     return [_suppressed(*image, params) for image in zip(poses, scores, views, strict=True)]
+
+
+def level_inputs(
+    images: list[np.ndarray], model: EstimatorParams, params: SearchParams, device: torch.device
+) -> tuple[list[tuple[int, np.ndarray]], list[torch.Tensor], int]:
+    """The pyramid levels of N images (H_i, W_i, 3) uint8 RGB: per level, (the image's index,
+    the image resized to it, (h, w, 3)), its Lab / 100 channels (1, 3, h, w) on `device`, and
+    the px of zeros the levels reach past the images' edges (beyond_edge, whole network
+    cells), which the network's input carries round them (padded_logits_each's margin). A
+    level smaller than a few PSM cells is left out."""
+    canonical_extent = model.canonical_extent
+    pool = max(params.psm_stride // STRIDE, 1)
+    levels = []
+    for i, image in enumerate(images):
+        for extent in level_extents(image.shape[0], params):
+            resized = resize_image(image, canonical_extent / extent)
+            if min(resized.shape[:2]) >= 2 * STRIDE * pool:
+                levels.append((i, resized))
+    # The network's border of zeros (jointnet.MARGIN) is the levels' reach past the edges, no
+    # more; and their inputs' buckets are finer than the crops' (SEARCH_BUCKET_STEPS): the
+    # search's maps are most of a searched image's network time (docs/tuning.md, speed).
+    beyond = round(params.beyond_edge * canonical_extent / STRIDE) * STRIDE
+    labs = [lab_channels(torch.from_numpy(r).to(device)[None]) for _, r in levels]
+    return levels, labs, beyond
 
 
 def _level_people(
