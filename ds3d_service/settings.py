@@ -12,29 +12,19 @@ from typing import Literal
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from ds3d.util.machine import usable_cpus, usable_memory_mb
-
-# What sizes the default worker processes: the resident memory of one (its own Pipeline, measured
-# at 0.80 GB after LSP images at 2 workers, docs/service-results.md) and of the service's own
-# process (its lifter for /v1/lift and the web app, 0.72 GB), each with a margin.
-WORKER_MB = 1024
-MAIN_MB = 1024
+from ds3d.util.machine import default_threads, default_workers
 
 
-def default_workers(settings: dict) -> int:
-    """The workers setting's default, from the settings read before it (device): one per
-    usable core, as many as the memory holds beside the service's own process; 1 on a GPU,
-    which one process keeps busy."""
-    if settings["device"] != "cpu":
-        return 1
-    fits = int((usable_memory_mb() - MAIN_MB) // WORKER_MB)
-    return max(1, min(usable_cpus(), fits))
+def workers_for(settings: dict) -> int:
+    """The workers setting's default, from the settings read before it (device):
+    ds3d.util.machine.default_workers."""
+    return default_workers(settings["device"])
 
 
-def default_torch_threads(settings: dict) -> int:
-    """The torch_threads setting's default, from the settings read before it (workers): the
-    usable cores shared among the workers, at most 2 each, at least 1."""
-    return max(1, min(2, usable_cpus() // settings["workers"]))
+def threads_for(settings: dict) -> int:
+    """The torch_threads setting's default, from the settings read before it (workers):
+    ds3d.util.machine.default_threads."""
+    return default_threads(settings["workers"])
 
 
 class Settings(BaseSettings):
@@ -102,7 +92,7 @@ class Settings(BaseSettings):
         "above the longest batch: max_batch_size images of the slowest kind.",
     )
     workers: int = Field(
-        default_factory=default_workers,
+        default_factory=workers_for,
         ge=1,
         le=64,
         description="Processes of /v1/pose's pipeline, each its own models (about 0.8 GB) with "
@@ -110,11 +100,11 @@ class Settings(BaseSettings):
         "processes give more images/s than as many threads (docs/service-results.md, worker "
         "processes). 1: the pipeline runs on the model thread itself. Default: one per usable "
         "core (the CPU affinity within a container's quota), as many as the available memory "
-        "holds beside the service's own (ds3d_service.settings.WORKER_MB, MAIN_MB); 1 on a "
+        "holds beside the service's own (ds3d.util.machine.WORKER_MB, MAIN_MB); 1 on a "
         "GPU.",
     )
     torch_threads: int = Field(
-        default_factory=default_torch_threads,
+        default_factory=threads_for,
         ge=1,
         description="torch.set_num_threads of each process's model thread: the 2D stage splits "
         "each batch across that many threads, the 3D stage's ops use them within. Default: the "

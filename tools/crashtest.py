@@ -30,6 +30,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
+from ds3d.util.provenance import provenance
 from ds3d_service.client import AsyncPoseClient, ServiceError, auth_headers
 from tools.loadtest import LOCAL_HOSTS, image_payloads, read_poses
 
@@ -175,6 +176,7 @@ def parse_args(argv):
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     result = asyncio.run(crash_test(args))
+    result["provenance"] = provenance()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "by_phase"}))

@@ -35,6 +35,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
+from ds3d.util.provenance import provenance
 from ds3d_service.client import auth_headers
 
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1"}
@@ -305,6 +306,7 @@ def parse_args(argv):
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     result, samples = asyncio.run(run(args))
+    result["provenance"] = provenance()
     load = f"c{args.concurrency}" if args.mode == "closed" else f"r{args.rate:g}"
     stem = args.name or f"{args.endpoint}_{args.mode}_{load}"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
+from ds3d.util.provenance import provenance
 from ds3d_service.client import auth_headers
 from tools.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
 
@@ -244,6 +245,7 @@ def parse_args(argv):
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     result, samples = asyncio.run(soak(args))
+    result["provenance"] = provenance()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     plot(result, samples, args.out / f"{args.name}.png")

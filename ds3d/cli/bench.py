@@ -66,7 +66,7 @@ def register(commands, evals, benches) -> None:
         help="each image with its person's box (from its LSP annotation); default: searched",
     )
     p.add_argument("--out", type=Path, help="JSON report")
-    add_model_options(p, device=True)
+    add_model_options(p, threads=None, device=True)  # --threads: with --workers, the machine's
     add_workers_option(p)
     p.set_defaults(func=bench_pipeline)
 

@@ -4,7 +4,6 @@ photos)."""
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -71,7 +70,7 @@ def register(commands, evals, benches) -> None:
         "video (2D over the frame, 3D beside it)",
     )
     add_device_option(p, "where both stages run")
-    add_model_options(p, threads=min(2, os.cpu_count() or 1))
+    add_model_options(p, threads=None)  # --threads: with --workers, the machine's
     add_workers_option(p)
     p.set_defaults(func=predict)
 

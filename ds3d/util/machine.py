@@ -9,6 +9,12 @@ import os
 from pathlib import Path
 
 CGROUP = Path("/sys/fs/cgroup")
+# What sizes the default worker processes of a pipeline on a CPU (ds3d.runners.workers): the
+# resident memory of one (its own Pipeline: 0.80 GB after LSP images, docs/service-results.md)
+# and of the process that starts them (the service's, with its lifter for /v1/lift: 0.72 GB),
+# each with a margin.
+WORKER_MB = 1024
+MAIN_MB = 1024
 
 
 def usable_cpus(cgroup: Path = CGROUP) -> int:
@@ -42,3 +48,20 @@ def _read(path: Path) -> str | None:
         return path.read_text()
     except OSError:
         return None
+
+
+def default_workers(device: str = "cpu") -> int:
+    """Worker processes that suit this machine for a pipeline on `device`: one per usable core,
+    as many as the available memory holds (WORKER_MB each beside MAIN_MB); 1 on a GPU, which
+    one process keeps busy. On a CPU processes give more images/s than as many threads: the
+    2D stage's Python holds the interpreter's lock for part of its time."""
+    if device != "cpu":
+        return 1
+    fits = int((usable_memory_mb() - MAIN_MB) // WORKER_MB)
+    return max(1, min(usable_cpus(), fits))
+
+
+def default_threads(workers: int) -> int:
+    """torch threads per worker: the usable cores shared among `workers`, at most 2 each (a
+    third pays little), at least 1."""
+    return max(1, min(2, usable_cpus() // workers))

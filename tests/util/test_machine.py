@@ -1,5 +1,5 @@
-"""What a process may use of the machine (ds3d.util.machine), and the service's defaults sized
-from it (ds3d_service.settings)."""
+"""What a process may use of the machine (ds3d.util.machine), and the defaults sized from it: the
+service's (ds3d_service.settings) and the commands' (ds3d.cli.parser) workers and threads."""
 
 import math
 
@@ -47,14 +47,22 @@ def test_the_service_sizes_its_workers_and_threads_from_the_machine(
 ):
     from ds3d_service import settings
 
-    monkeypatch.setattr(settings, "usable_cpus", lambda: cpus)
-    monkeypatch.setattr(settings, "usable_memory_mb", lambda: memory_mb)
+    monkeypatch.setattr(machine, "usable_cpus", lambda: cpus)
+    monkeypatch.setattr(machine, "usable_memory_mb", lambda: memory_mb)
     for name in ("DS3D_WORKERS", "DS3D_TORCH_THREADS", "DS3D_DEVICE"):
         monkeypatch.delenv(name, raising=False)
     chosen = settings.Settings()
     assert (chosen.workers, chosen.torch_threads) == (workers, threads)
     assert settings.Settings(device="cuda").workers == 1
     assert settings.Settings(workers=1).torch_threads == min(2, cpus)
+    from ds3d.cli.parser import build_parser, resolve_workers
+
+    args = build_parser().parse_args(["bench", "pipeline"])
+    resolve_workers(args)
+    assert (args.workers, args.threads) == (workers, threads)
+    args = build_parser().parse_args(["bench", "pipeline", "--workers", "1"])
+    resolve_workers(args)
+    assert (args.workers, args.threads) == (1, min(2, cpus))
 
 
 def test_the_module_reads_the_real_machine():
