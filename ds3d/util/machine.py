@@ -53,12 +53,19 @@ def _read(path: Path) -> str | None:
 def default_workers(device: str = "cpu") -> int:
     """Worker processes that suit this machine for a pipeline on `device`: one per usable core,
     as many as the available memory holds (WORKER_MB each beside MAIN_MB); 1 on a GPU, which
-    one process keeps busy. On a CPU processes give more images/s than as many threads: the
-    2D stage's Python holds the interpreter's lock for part of its time."""
-    if device != "cpu":
+    one process keeps busy, and where no shared memory can be written. On a CPU processes give
+    more images/s than as many threads: the 2D stage's Python holds the interpreter's lock for
+    part of its time."""
+    if device != "cpu" or not shared_memory_writable():
         return 1
     fits = int((usable_memory_mb() - MAIN_MB) // WORKER_MB)
     return max(1, min(usable_cpus(), fits))
+
+
+def shared_memory_writable(folder: Path = Path("/dev/shm")) -> bool:
+    """Whether this process may write POSIX shared memory, through which worker processes share
+    their barrier and tensors (some sandboxes mount none, or none for this user)."""
+    return os.access(folder, os.W_OK | os.X_OK)
 
 
 def default_threads(workers: int) -> int:

@@ -49,6 +49,7 @@ def test_the_service_sizes_its_workers_and_threads_from_the_machine(
 
     monkeypatch.setattr(machine, "usable_cpus", lambda: cpus)
     monkeypatch.setattr(machine, "usable_memory_mb", lambda: memory_mb)
+    monkeypatch.setattr(machine, "shared_memory_writable", lambda: True)
     for name in ("DS3D_WORKERS", "DS3D_TORCH_THREADS", "DS3D_DEVICE"):
         monkeypatch.delenv(name, raising=False)
     chosen = settings.Settings()
@@ -63,6 +64,15 @@ def test_the_service_sizes_its_workers_and_threads_from_the_machine(
     args = build_parser().parse_args(["bench", "pipeline", "--workers", "1"])
     resolve_workers(args)
     assert (args.workers, args.threads) == (1, min(2, cpus))
+
+
+def test_without_shared_memory_one_process_serves(monkeypatch, tmp_path):
+    assert machine.shared_memory_writable(tmp_path)
+    assert not machine.shared_memory_writable(tmp_path / "none")
+    monkeypatch.setattr(machine, "usable_cpus", lambda: 8)
+    monkeypatch.setattr(machine, "usable_memory_mb", lambda: 100000)
+    monkeypatch.setattr(machine, "shared_memory_writable", lambda: False)
+    assert machine.default_workers() == 1 and machine.default_threads(1) == 2
 
 
 def test_the_module_reads_the_real_machine():
