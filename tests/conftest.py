@@ -1,4 +1,5 @@
-"""Shared fixtures. Tests that need the datasets skip when $DS3D_DATA is absent; CI has them."""
+"""Shared fixtures. Tests that need the datasets skip when $DS3D_DATA is absent, and fail under CI
+(tests/needs.py), which has them."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import pytest
 import torch
 
 from ds3d.util.paths import MODELS_DIR, data_root
+from tests.needs import missing
 
 
 def pytest_configure(config):
@@ -16,7 +18,7 @@ def pytest_configure(config):
 def data_dir():
     root = data_root()
     if not root.is_dir():
-        pytest.skip(f"datasets not found at {root} (set DS3D_DATA)")
+        missing(f"datasets not found at {root} (set DS3D_DATA)")
     return root
 
 

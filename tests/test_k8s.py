@@ -9,10 +9,12 @@ from pathlib import Path
 
 import pytest
 
-kubernetes_validate = pytest.importorskip(
-    "kubernetes_validate", reason="kubernetes-validate not installed (the dev extra has it)"
+from tests.needs import import_or_missing
+
+kubernetes_validate = import_or_missing(
+    "kubernetes_validate", "kubernetes-validate not installed (the dev extra has it)"
 )
-yaml = pytest.importorskip("yaml", reason="PyYAML not installed (kubernetes-validate needs it)")
+yaml = import_or_missing("yaml", "PyYAML not installed (kubernetes-validate needs it)")
 
 K8S_DIR = Path(__file__).resolve().parents[1] / "docker" / "k8s"
 KUBERNETES = "1.32.0"

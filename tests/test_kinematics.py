@@ -12,6 +12,7 @@ from ds3d import kinematics as K
 from ds3d.data.bvh import format_bvh, forward_kinematics, parse_bvh
 from ds3d.evaluation.h36m import protocol_cases
 from ds3d.fit.camera import rotation_matrix
+from tests.needs import import_or_missing
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +83,7 @@ def test_a_written_file_reads_back_with_the_joints_in_place(poses):
 
 
 def test_an_independent_reader_places_the_joints_alike(poses, tmp_path):
-    bvhio = pytest.importorskip("bvhio", reason="bvhio is in the dev extra: pip install -e .[dev]")
+    bvhio = import_or_missing("bvhio", "bvhio is in the dev extra: pip install -e .[dev]")
     motion = K.inverse_kinematics(poses[:3])
     path = tmp_path / "person.bvh"
     path.write_text(format_bvh(K.to_bvh(motion, frame_time=0.04)))

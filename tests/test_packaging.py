@@ -22,6 +22,7 @@ import ds3d.pipeline
 import ds3d.util.paths
 from ds3d.errors import DataFormatError
 from ds3d.util.paths import MODEL_DIR_ENV, PACKAGE_MODELS_DIR, PROJECT_ROOT
+from tests.needs import missing
 
 PIP = [sys.executable, "-m", "pip", "-q", "--disable-pip-version-check"]  # the project venv's
 PYPROJECT = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())
@@ -106,7 +107,7 @@ def _repository_copy(dest: Path) -> Path:
     """The repository's files as git sees them (tracked, and untracked but not ignored), copied
     to `dest`: the wheel is built there, so that no build/ is left in the checkout."""
     if shutil.which("git") is None:
-        pytest.skip("no git: the wheel is built from the files of a git checkout")
+        missing("no git: the wheel is built from the files of a git checkout")
     listing = ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"]
     listed = subprocess.run(listing, cwd=PROJECT_ROOT, capture_output=True, check=True).stdout
     for name in filter(None, listed.decode().split("\0")):

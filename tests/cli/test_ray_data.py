@@ -23,6 +23,7 @@ from ds3d.runners.ray_data import (
     parse_actors,
 )
 from ds3d.skeleton import NUM_JOINTS
+from tests.needs import import_or_missing
 
 JPEG = b"\xff\xd8\xff\xe0" + bytes(12)  # a JPEG's first bytes: found as an image by content
 
@@ -102,7 +103,7 @@ def test_the_cli_imports_no_ray_and_batch_says_how_to_install_it(tmp_path, monke
 @pytest.fixture
 def local_ray():
     """A single-node Ray of 2 CPUs for the test, shut down after."""
-    ray = pytest.importorskip("ray", reason="Ray is an optional extra: pip install -e '.[ray]'")
+    ray = import_or_missing("ray", "Ray is an optional extra: pip install -e '.[ray]'")
     ray.init(
         num_cpus=2,
         include_dashboard=False,

@@ -22,6 +22,7 @@ from ds3d.data.cmu import (
 from ds3d.errors import DataFormatError
 from ds3d.skeleton import HEAD_TOP, L_ANKLE, L_HIP, NECK, R_ANKLE, R_HIP, hip_midpoint
 from ds3d.util.paths import data_root
+from tests.needs import missing
 
 CMU = data_root() / "cmu_bvh"
 H36M = data_root() / "h36m" / "poses_3d_17j.npz"
@@ -30,7 +31,7 @@ H36M = data_root() / "h36m" / "poses_3d_17j.npz"
 def cmu_file(name: str) -> Path:
     path = CMU / name
     if not path.is_file():
-        pytest.skip(f"CMU BVH data not found at {path}")
+        missing(f"CMU BVH data not found at {path}")
     return path
 
 
@@ -238,7 +239,7 @@ def test_retargeting_sets_lengths_and_keeps_directions_and_pelvis():
 
 def test_retargeted_cmu_poses_take_human36m_training_proportions():
     if not H36M.is_file():
-        pytest.skip(f"Human3.6M poses not found at {H36M}")
+        missing(f"Human3.6M poses not found at {H36M}")
     reference = h36m_reference_bone_lengths()
     assert ((reference > 100) & (reference < 600)).all()  # mm
     # left and right bones of the (symmetric) Human3.6M skeletons agree: the bone table pairs up

@@ -15,6 +15,7 @@ from ds3d.util.paths import MODELS_DIR
 from ds3d_service.app import create_app
 from ds3d_service.engine import Engine
 from ds3d_service.settings import Settings
+from tests.needs import missing
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
 MODEL_DIR = Settings().model_dir or MODELS_DIR
@@ -53,7 +54,7 @@ def serving():
 def engine():
     """The bundled models (or $DS3D_MODEL_DIR's), loaded once for every service test."""
     if not (MODEL_DIR / "posedb").exists():
-        pytest.skip(f"no pose database under {MODEL_DIR}")
+        missing(f"no pose database under {MODEL_DIR}")
     return Engine.load(MODEL_DIR, "cpu")
 
 

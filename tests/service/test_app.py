@@ -20,7 +20,6 @@ from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
 from ds3d.data.lsp import load_lsp
-from ds3d.errors import DataFormatError
 from ds3d.io.images import read_image
 from ds3d.kinematics import NODES, Motion, forward_kinematics
 from ds3d.skeleton import BONE_NAMES, JOINT_NAMES
@@ -29,11 +28,12 @@ from ds3d.util.threads import intra_op_threads
 from ds3d_service.client import AsyncPoseClient, PoseClient, ServiceError
 from ds3d_service.engine import Engine
 from ds3d_service.settings import Settings
+from tests.needs import missing
 
 # The model the service would serve: $DS3D_MODEL_DIR, else the bundled models/.
 MODEL_DIR = Settings().model_dir or MODELS_DIR
 if not (MODEL_DIR / "posedb").exists():
-    pytest.skip(f"no pose database under {MODEL_DIR}", allow_module_level=True)
+    missing(f"no pose database under {MODEL_DIR}", module_level=True)
 
 MAX_IMAGE_BYTES = 100_000
 MAX_IMAGE_PIXELS_SIDE = 2000  # the url fixture's max_image_pixels: 2000 x 2000
@@ -52,12 +52,9 @@ def url(engine, serving):
 
 
 @pytest.fixture(scope="module")
-def poses():
+def poses(data_dir):
     """Real 2D poses (pixels): the first 8 LSP annotations."""
-    try:
-        return load_lsp().joints[:8]
-    except DataFormatError:
-        pytest.skip("no LSP annotations under data_root()")
+    return load_lsp().joints[:8]
 
 
 def metric(url: str, name: str, labels: dict) -> dict[str, float]:
@@ -420,12 +417,12 @@ def test_loadtest_tool_writes_its_report(url, poses, tmp_path):
         loadtest.parse_args(["http://example.com:8000"])  # only local targets
 
 
-def test_people_all_and_nobody(engine, serving):
+def test_people_all_and_nobody(engine, serving, data_dir):
     """A canvas of two LSP test people: people=all answers both (boxes matching theirs), the
     default answers one of them, found (the search's likeliest proposal alone, whose 2D score
     need not be the best of all's); a blank image answers nobody, and person_found false."""
     if engine.pipeline is None:
-        pytest.skip("the bundled models have no 2D stage")
+        missing("the bundled models have no 2D stage")
     from ds3d.boxes import iou
     from ds3d.evaluation.canvases import compose
 

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import pytest
 
-schemathesis = pytest.importorskip("schemathesis", reason="pip install -e '.[dev]'")
+from tests.needs import import_or_missing
+
+schemathesis = import_or_missing(
+    "schemathesis", "schemathesis is in the dev extra: pip install -e '.[dev]'"
+)
 import io  # noqa: E402
 
 from hypothesis import HealthCheck, given, settings  # noqa: E402  (comes with schemathesis)

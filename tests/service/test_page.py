@@ -20,10 +20,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ds3d.errors import DataFormatError
 from ds3d_service.app import create_app
 from ds3d_service.routes.page import PAGE_CSP, STATIC_DIR
 from ds3d_service.settings import Settings
+from tests.needs import missing
 
 KEY = "page-test-key-0123456789"
 CHROMIUM_ENV = "DS3D_CHROMIUM"
@@ -138,17 +138,15 @@ def browser():
     try:
         from playwright.sync_api import Error, sync_playwright
     except ImportError:
-        pytest.skip(
-            "no playwright: pip install -e '.[dev]' (the browser: apt-get install chromium)"
-        )
+        missing("no playwright: pip install -e '.[dev]' (the browser: apt-get install chromium)")
     path = chromium_path()
     if path is None:
-        pytest.skip(f"no chromium: apt-get install chromium, or set ${CHROMIUM_ENV} to one")
+        missing(f"no chromium: apt-get install chromium, or set ${CHROMIUM_ENV} to one")
     with sync_playwright() as playwright:
         try:
             launched = playwright.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
         except Error as exc:
-            pytest.skip(f"chromium at {path} did not start: {exc}")
+            missing(f"chromium at {path} did not start: {exc}")
         yield launched
         launched.close()
 
@@ -164,10 +162,7 @@ def photo(data_dir) -> Path:
     """An LSP test image: one person."""
     from ds3d.data.lsp import load_lsp
 
-    try:
-        return load_lsp(split="test").image_paths[0]
-    except DataFormatError as exc:
-        pytest.skip(f"no LSP test images: {exc}")
+    return load_lsp(split="test").image_paths[0]
 
 
 @pytest.fixture

@@ -1,6 +1,6 @@
 """The API on Ray Serve (ds3d_service/ray_serve.py): a local single-node Ray, one replica serving a
 --small 2D model on a free port of 127.0.0.1, driven by raw httpx; answers as the plain
-service's. Skipped without ray (the optional extra `ray`) or without the datasets."""
+service's. Needs ray (the optional extra `ray`) and the datasets (tests/needs.py)."""
 
 from __future__ import annotations
 
@@ -13,15 +13,15 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
+from tests.needs import missing
+
 try:
     import ray
     from ray import serve
 
     from ds3d_service.ray_serve import ServeQueue, app_builder, http_options
 except ImportError as exc:
-    pytest.skip(
-        f"ray[serve] is not installed ({exc}): pip install -e .[ray]", allow_module_level=True
-    )
+    missing(f"ray[serve] is not installed ({exc}): pip install -e .[ray]", module_level=True)
 
 from ds3d.data.lsp import load_lsp
 from ds3d.skeleton import JOINT_NAMES

@@ -21,6 +21,7 @@ import pytest
 
 from ds3d_service.access.keys import ApiKeys, InvalidKeys, key_id, presented_key, read_keys
 from ds3d_service.client import PoseClient, ServiceError
+from tests.needs import missing
 
 KEY_A = "a-first-test-key-0123456789"
 KEY_B = "b-second-test-key-0123456789"
@@ -243,7 +244,7 @@ def test_no_installed_dependency_has_a_known_vulnerability(tmp_path):
     advisory source cannot answer: `make audit` writes the last result to docs/security/."""
     audit = Path(sys.executable).with_name("pip-audit")
     if not audit.exists():
-        pytest.skip("pip-audit not installed (the dev extra has it)")
+        missing("pip-audit not installed (the dev extra has it)")
     out = tmp_path / "audit.json"
     command = [str(audit), "--skip-editable", "--progress-spinner", "off", "-f", "json"]
     run = subprocess.run([*command, "-o", str(out)], capture_output=True, text=True, timeout=600)

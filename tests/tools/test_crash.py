@@ -17,15 +17,18 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.needs import missing
 from tools import crashtest
 
 REPO = Path(__file__).resolve().parents[2]
 NGINX = shutil.which("nginx") or next(
     (p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if Path(p).exists()), None
 )
-pytestmark = pytest.mark.skipif(
-    NGINX is None, reason="nginx not installed (Debian: apt-get install nginx; .ci/run installs it)"
-)
+if NGINX is None:
+    missing(
+        "nginx not installed (Debian: apt-get install nginx; .ci/run installs it)",
+        module_level=True,
+    )
 
 
 def free_ports(n: int) -> list[int]:

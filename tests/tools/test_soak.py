@@ -14,6 +14,7 @@ import httpx
 import pytest
 
 from ds3d_service.allocator import find_jemalloc
+from tests.needs import missing
 from tools import soak
 
 
@@ -68,5 +69,5 @@ def test_a_short_soak_answers_everything_and_leaks_no_descriptors(server, load_i
 
 def test_the_service_runs_under_jemalloc_where_installed(server):
     if find_jemalloc() is None:
-        pytest.skip("jemalloc not installed (Debian: apt-get install libjemalloc2)")
+        missing("jemalloc not installed (Debian: apt-get install libjemalloc2)")
     assert 'ds3d_allocator_info{name="jemalloc"} 1.0' in httpx.get(f"{server}/metrics").text

@@ -12,6 +12,7 @@ import pytest
 from ds3d.cli import main as cli
 from ds3d.util.memory import loaded_allocator, resident_mb
 from ds3d_service.allocator import find_jemalloc
+from tests.needs import missing
 
 
 def allocator_of_a_child(env: dict[str, str]) -> str:
@@ -26,7 +27,7 @@ def test_the_allocator_is_read_from_the_libraries_loaded():
     assert allocator_of_a_child({"LD_PRELOAD": ""}) == "glibc"
     library = find_jemalloc()
     if library is None:
-        pytest.skip("jemalloc not installed (Debian: apt-get install libjemalloc2)")
+        missing("jemalloc not installed (Debian: apt-get install libjemalloc2)")
     assert allocator_of_a_child({"LD_PRELOAD": library}) == "jemalloc"
 
 
