@@ -27,6 +27,16 @@ MIN_FOCAL_PX = 1.0
 # with the ratio and its PSM's max-convolution with the ratio squared: without a bound, one 8 x
 # 8000 strip asked for 800 GB. An image with a person box needs no search.
 MAX_ASPECT_RATIO = 8.0
+# A person box's sides are taken as at least MIN_BOX_PX, widened about its centre: the 2D stage
+# scales a box to its canonical extent (100 px), and a box of a thousandth of a pixel asked for a
+# crop of 30 GB.
+MIN_BOX_PX = 1.0
+# The longest side a person box may have, in multiples of its image's longer side: the 2D stage
+# cuts the crop out at the image's resolution, padding it past the image's edges by up to
+# beyond_edge of the box's size, before scaling it; a 100,000 px box on a 640 x 480 photo asked
+# for 3 GB of padding and a minute. Four times holds a photo of a person's head and shoulders
+# with the box of all of them.
+MAX_BOX_SCALE = 4.0
 PEOPLE = ("best", "all")  # who an image answers: its best person, or every one found
 # The default min_score: people less likely than this are not answered. The score is a
 # calibrated probability (ds3d.people.score; docs/RESULTS.md, people in photos): answered where
@@ -140,8 +150,9 @@ def checked_box(box, width: int, height: int) -> np.ndarray:
     """A person box given by a user, (x0, y0, x1, y1) px, checked against its image of width x
     height px -> (4,) float32. The one place where the CLI, the Python API and the service
     refuse a box: raises InvalidBox, naming why, when it is not four finite numbers, its corners
-    are reversed or it has no area, or it does not overlap the image. A box that overlaps the
-    image only in part is kept (the 2D stage crops what lies inside)."""
+    are reversed or it has no area, it does not overlap the image, or its longer side is over
+    MAX_BOX_SCALE times the image's. A box that overlaps the image only in part is kept (the 2D
+    stage crops what lies inside); a side under MIN_BOX_PX is widened to it about its centre."""
     try:
         values = np.asarray(box, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as err:
@@ -156,11 +167,26 @@ def checked_box(box, width: int, height: int) -> np.ndarray:
             f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] has no area: it wants x1 > x0 and y1 > y0 "
             "(corners x0, y0, x1, y1, not x, y, width, height)"
         )
+    x0, x1 = _at_least(x0, x1, MIN_BOX_PX)
+    y0, y1 = _at_least(y0, y1, MIN_BOX_PX)
     if x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height:
         raise InvalidBox(
             f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] lies outside the {width}x{height} image"
         )
-    return values.astype(np.float32)
+    if max(x1 - x0, y1 - y0) > MAX_BOX_SCALE * max(width, height):
+        raise InvalidBox(
+            f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] is over {MAX_BOX_SCALE:g} times the size of "
+            f"the {width}x{height} image"
+        )
+    return np.array([x0, y0, x1, y1], np.float32)
+
+
+def _at_least(low: float, high: float, size: float) -> tuple[float, float]:
+    """The interval [low, high] widened about its centre to `size` where it is shorter."""
+    if high - low >= size:
+        return low, high
+    centre = (low + high) / 2
+    return centre - size / 2, centre + size / 2
 
 
 def check_searchable(height: int, width: int) -> None:

@@ -5,12 +5,30 @@ import numpy as np
 import pytest
 
 from ds3d.errors import InvalidBox, InvalidImage, InvalidPose
-from ds3d.inputs import MAX_ASPECT_RATIO, checked_box, image_input, image_inputs
+from ds3d.inputs import (
+    MAX_ASPECT_RATIO,
+    MAX_BOX_SCALE,
+    MIN_BOX_PX,
+    checked_box,
+    image_input,
+    image_inputs,
+)
 
 
 def test_a_box_inside_or_overlapping_the_image_is_kept():
     assert checked_box([10, 20, 110, 220], 200, 300).tolist() == [10, 20, 110, 220]
     assert checked_box(np.array([-50, -50, 10, 10]), 200, 300).dtype == np.float32
+    largest = MAX_BOX_SCALE * 300
+    assert checked_box([-100, -50, largest - 100, 250], 200, 300)[2] == largest - 100
+
+
+def test_a_box_under_a_pixel_is_widened_about_its_centre():
+    """A sub-pixel box (a fraction of the image sent as pixels, say) is taken as MIN_BOX_PX a
+    side about its centre, the size the 2D stage can scale; a wider side stays as it is."""
+    box = checked_box([10, 20, 10.001, 60], 200, 300)
+    assert box.tolist() == pytest.approx(
+        [10.0005 - MIN_BOX_PX / 2, 20, 10.0005 + MIN_BOX_PX / 2, 60]
+    )
 
 
 @pytest.mark.parametrize(
@@ -20,6 +38,7 @@ def test_a_box_inside_or_overlapping_the_image_is_kept():
         ([10, 20, 10, 220], "no area"),  # zero width
         ([300, 20, 400, 220], "outside the 200x300 image"),
         ([-90, -90, -10, -10], "outside"),
+        ([0, 0, 100, MAX_BOX_SCALE * 300 + 1], "over 4 times the size of the 200x300 image"),
         ([1, 2, 3], "four numbers"),
         (["a", 2, 3, 4], "four numbers"),
         ([0, 0, float("nan"), 5], "NaN or infinite"),
