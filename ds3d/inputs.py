@@ -161,7 +161,7 @@ def checked_box(box, width: int, height: int) -> np.ndarray:
         raise InvalidBox(f"bbox must be four numbers x0, y0, x1, y1; got {values.size}")
     if not np.isfinite(values).all():
         raise InvalidBox("bbox has a NaN or infinite coordinate")
-    x0, y0, x1, y1 = values
+    x0, y0, x1, y1 = (float(v) for v in values)
     if x1 <= x0 or y1 <= y0:
         raise InvalidBox(
             f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] has no area: it wants x1 > x0 and y1 > y0 "

@@ -1,6 +1,7 @@
 """Python client SDK of the ds3d service: `PoseClient` and its async twin `AsyncPoseClient`.
 
-Depends on httpx and numpy only (no torch, faiss or fastapi), so it installs anywhere:
+Depends on httpx and numpy only (no torch, faiss or fastapi), so it installs anywhere (a person
+box given with an image file also reads the file's size with Pillow):
 
     with PoseClient("http://127.0.0.1:8000") as client:  # api_key=..., default $DS3D_API_KEY
         res = client.lift(joints_2d)            # (14, 2) or (B, 14, 2) pixels
@@ -19,6 +20,8 @@ function of its request, so sending one twice is safe.
 from __future__ import annotations
 
 import asyncio
+import io
+import json
 import os
 import random
 import struct
@@ -142,6 +145,44 @@ def _image_bytes(image: ImageLike) -> tuple[bytes, str]:
     return data, ctype
 
 
+def person_box(bbox, width: int, height: int) -> dict[str, float]:
+    """A person box's corners x0, y0, x1, y1 px on an image of width x height px -> /v1/pose's
+    `box`: its centre cx, cy and its width and height as fractions of the image's. Raises
+    ValueError for corners that are not in order (x1 > x0, y1 > y0) or not finite."""
+    x0, y0, x1, y1 = (float(v) for v in np.asarray(bbox, dtype=np.float64).reshape(4))
+    if not (x1 > x0 and y1 > y0 and np.isfinite([x0, y0, x1, y1]).all()):
+        raise ValueError(
+            f"bbox [{x0:g}, {y0:g}, {x1:g}, {y1:g}] wants x1 > x0 and y1 > y0 (corners x0, y0, "
+            "x1, y1, not x, y, width, height)"
+        )
+    return {
+        "cx": (x0 + x1) / 2 / width,
+        "cy": (y0 + y1) / 2 / height,
+        "width": (x1 - x0) / width,
+        "height": (y1 - y0) / height,
+    }
+
+
+# EXIF orientations that turn an image by a quarter: its upright width is its stored height.
+_QUARTER_TURNS = frozenset({5, 6, 7, 8})
+
+
+def _upright_size(image: ImageLike, data: bytes) -> tuple[int, int]:
+    """(width, height) px of the image as the service reads it, upright: an array's shape, or
+    a file's header turned by its EXIF orientation (read with Pillow, imported here only)."""
+    if isinstance(image, np.ndarray):
+        return image.shape[1], image.shape[0]
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            width, height = img.size
+            turned = img.getexif().get(0x0112) in _QUARTER_TURNS  # 0x0112: Orientation
+    except UnidentifiedImageError as err:
+        raise ValueError(f"a box needs its image's size, and this is not an image: {err}") from err
+    return (height, width) if turned else (width, height)
+
+
 def _retry_after(resp: httpx.Response) -> float | None:
     value = resp.headers.get("retry-after")
     try:
@@ -199,7 +240,7 @@ class _Protocol:
             query["focal_px"] = float(focal_px)
         form = {}
         if bbox is not None:
-            form["bbox"] = str(np.asarray(bbox, dtype=np.float64).reshape(4).tolist())
+            form["box"] = json.dumps(person_box(bbox, *_upright_size(image, data)))
         if intrinsics is not None:
             form["intrinsics"] = str(
                 np.asarray(intrinsics, dtype=np.float64).reshape(3, 3).tolist()
@@ -350,7 +391,8 @@ class PoseClient:
         angles: bool = False,
     ) -> Person:
         """image: a path, image file bytes, or an (H, W, 3) uint8 RGB array; bbox (4,) x0, y0,
-        x1, y1 pixels; intrinsics (3, 3); focal_px: without intrinsics, the camera's focal
+        x1, y1 pixels of the upright image (sent as the API's box, person_box); intrinsics
+        (3, 3); focal_px: without intrinsics, the camera's focal
         length in pixels, which places the person (Person.root_position; default assumed);
         angles: also the joint angles (Person.angles)."""
         req = self._proto.pose_request(image, bbox, intrinsics, focal_px=focal_px, angles=angles)

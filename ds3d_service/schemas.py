@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, Strict
 
 import ds3d.lifter
 import ds3d.result
@@ -21,17 +22,27 @@ Point2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 Point3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Quaternion = Annotated[list[float], Field(min_length=4, max_length=4)]
 # What the library takes (ds3d.inputs), said in the schema: coordinates and camera entries within
-# MAX_COORDINATE_PX, focal lengths of at least MIN_FOCAL_PX, at least two joints visible.
-Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_PX, le=MAX_COORDINATE_PX)]
-Focal = Annotated[float, Field(ge=MIN_FOCAL_PX, le=MAX_COORDINATE_PX)]
+# MAX_COORDINATE_PX, focal lengths of at least MIN_FOCAL_PX, at least two joints visible. Numbers
+# and flags are strict, as JSON Schema's types are: true is not the number 1, nor 1 a boolean.
+Coordinate = Annotated[float, Strict(), Field(ge=-MAX_COORDINATE_PX, le=MAX_COORDINATE_PX)]
+Focal = Annotated[float, Strict(), Field(ge=MIN_FOCAL_PX, le=MAX_COORDINATE_PX)]
+Flag = Annotated[bool, Strict()]
 InputPoint2 = Annotated[list[Coordinate], Field(min_length=2, max_length=2)]
 Intrinsics = tuple[
     tuple[Focal, Coordinate, Coordinate],
     tuple[Coordinate, Focal, Coordinate],
     tuple[Coordinate, Coordinate, Coordinate],
 ]
-Box = tuple[Coordinate, Coordinate, Coordinate, Coordinate]
+# A person box's corners x0, y0, x1, y1 px, as earlier clients send /v1/pose's `bbox`: its rules
+# (x1 > x0, y1 > y0, overlapping the image) are beyond a schema, and ds3d.inputs checks them.
+Corners = tuple[Coordinate, Coordinate, Coordinate, Coordinate]
 MIN_VISIBLE = 2  # ds3d.inputs.visibility_batch
+# A PersonBox's sides, as fractions of the image's: from a millionth (smaller ones could round
+# to no area when made pixels; ds3d.inputs widens a box under a pixel anyway) to twice the image.
+MIN_BOX_FRACTION = 1e-6
+MAX_BOX_FRACTION = 2.0
+Centre = Annotated[float, Strict(), Field(ge=0.0, le=1.0)]
+Side = Annotated[float, Strict(), Field(ge=MIN_BOX_FRACTION, le=MAX_BOX_FRACTION)]
 
 
 class _Strict(BaseModel):
@@ -45,7 +56,7 @@ class LiftItem(_Strict):
     intrinsics: Intrinsics | None = Field(
         None, description="3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]; omitted: unknown"
     )
-    visible: Annotated[list[bool], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] | None = (
+    visible: Annotated[list[Flag], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS)] | None = (
         Field(
             None,
             description="14 flags, false for a joint whose 2D position is a guess; at least "
@@ -53,6 +64,25 @@ class LiftItem(_Strict):
             json_schema_extra={"contains": {"const": True}, "minContains": MIN_VISIBLE},
         )
     )
+
+
+class PersonBox(_Strict):
+    """Where the person is in /v1/pose's image, as fractions of its width and height (0 the
+    left or top edge, 1 the right or bottom; YOLO's convention): its centre on the image, so
+    that the box overlaps it, and its sides more than zero, up to twice the image's (a photo
+    that cuts the person off, with the box of all of them)."""
+
+    cx: Centre = Field(description="the box's centre, fraction of the image's width from its left")
+    cy: Centre = Field(description="the box's centre, fraction of the image's height from its top")
+    width: Side = Field(description="the box's width, fraction of the image's width")
+    height: Side = Field(description="the box's height, fraction of the image's height")
+
+    def corners(self, width: int, height: int) -> np.ndarray:
+        """The box's corners x0, y0, x1, y1 in px of an image of width x height px: (4,)
+        float64 (ds3d.inputs.checked_box's input)."""
+        centre = np.array([self.cx, self.cy, self.cx, self.cy])
+        half = np.array([-self.width, -self.height, self.width, self.height]) / 2
+        return (centre + half) * np.array([width, height, width, height], np.float64)
 
 
 class LiftRequest(_Strict):

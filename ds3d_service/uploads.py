@@ -1,11 +1,18 @@
 """Reading the /v1/pose upload into a checked ImageInput (ds3d.inputs.image_input): the image as
-multipart field `image` or as a raw image/* body, within the size caps, the optional bbox and
-intrinsics (form fields or query parameters), and the decoded image. Every check here runs
-before the model is consulted."""
+multipart field `image` or as a raw image/* body, within the size caps, the optional person box
+and intrinsics (form fields or query parameters), and the decoded image. Every check here runs
+before the model is consulted.
+
+The person box is `box`, a PersonBox (its centre and sides as fractions of the image), whose
+schema says every rule it has: the corner form `bbox` [x0, y0, x1, y1] px of earlier clients is
+still read, but left out of the OpenAPI document, since no schema can say x1 > x0 or that the
+box overlaps an image it has not seen, and a client generated from the document would send boxes
+that it allows and the service refuses."""
 
 from __future__ import annotations
 
-import numpy as np
+from typing import TypeVar
+
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
 from pydantic import TypeAdapter, ValidationError
@@ -15,17 +22,27 @@ from ds3d.errors import ImageTooLarge
 from ds3d.inputs import ImageInput, image_input
 from ds3d.io.images import decode_image
 from ds3d_service.errors import ApiError
-from ds3d_service.schemas import Box, Intrinsics
+from ds3d_service.schemas import Corners, Intrinsics, PersonBox
 from ds3d_service.settings import Settings
+
+T = TypeVar("T")
+
+# The multipart form's fields: the image and the JSON-valued options (bbox, the corner form of
+# box, outside the OpenAPI document).
+FORM_FIELDS = ("image", "box", "bbox", "intrinsics")
 
 # Room for the multipart envelope and the small form fields around the image.
 MULTIPART_OVERHEAD_BYTES = 64 * 1024
 
 # The box and the intrinsics of /v1/pose travel as JSON text (query parameters or form fields);
 # their schemas are those of /v1/lift's values.
-BOX = TypeAdapter(Box)
+BOX = TypeAdapter(PersonBox)
+CORNERS = TypeAdapter(Corners)
 INTRINSICS = TypeAdapter(Intrinsics)
-BOX_DOC = "[x0, y0, x1, y1] px, x1 > x0 and y1 > y0, overlapping the image; skips the search"
+BOX_DOC = (
+    "the person's box, as fractions of the image's width and height: its centre cx, cy in [0, 1]"
+    " and its width and height; skips the search"
+)
 INTRINSICS_DOC = "3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] px"
 
 
@@ -44,7 +61,7 @@ POSE_OPENAPI = {
             "content": {"application/json": {"schema": _json_text(adapter, doc)}},
         }
         for name, adapter, doc in (
-            ("bbox", BOX, BOX_DOC),
+            ("box", BOX, BOX_DOC),
             ("intrinsics", INTRINSICS, INTRINSICS_DOC),
         )
     ],
@@ -58,13 +75,13 @@ POSE_OPENAPI = {
                     "additionalProperties": False,
                     "properties": {
                         "image": {"type": "string", "format": "binary"},
-                        "bbox": _json_text(BOX, BOX_DOC),
+                        "box": _json_text(BOX, BOX_DOC),
                         "intrinsics": _json_text(INTRINSICS, INTRINSICS_DOC),
                     },
                 },
                 "encoding": {
                     "image": {"contentType": "image/*"},
-                    "bbox": {"contentType": "application/json"},
+                    "box": {"contentType": "application/json"},
                     "intrinsics": {"contentType": "application/json"},
                 },
             },
@@ -76,29 +93,35 @@ POSE_OPENAPI = {
 
 async def read_pose_input(request: Request, settings: Settings, **options) -> ImageInput:
     """The image, box and intrinsics of a /v1/pose request, checked with `options` (focal_px,
-    people, min_score) by ds3d.inputs.image_input. bbox, intrinsics: JSON text in the query
-    parameters, which multipart form fields of the same names override. Raises ApiError 413 (too
-    large), 415 (not an image content type), 422 (missing field, bad array), or image_input's
-    errors (an image that does not decode, a box it cannot hold, ...)."""
+    people, min_score) by ds3d.inputs.image_input. box (or the corner form bbox), intrinsics:
+    JSON text in the query parameters, which multipart form fields of the same names override.
+    Raises ApiError 413 (too large), 415 (not an image content type), 422 (missing field, bad
+    JSON, both box and bbox), or image_input's errors (an image that does not decode, a box it
+    cannot hold, ...)."""
     limit = settings.max_image_bytes
     ctype = request.headers.get("content-type", "").lower()
-    bbox, intrinsics = request.query_params.get("bbox"), request.query_params.get("intrinsics")
+    texts = {name: request.query_params.get(name) for name in FORM_FIELDS[1:]}
     _refuse_declared_oversize(request, limit)
     if ctype.startswith("multipart/form-data"):
         form = await request.form(max_files=1, max_fields=8)
+        _refuse_unknown_fields(form)
         data = await _read_form_image(form, limit)
-        bbox = _form_text(form, "bbox", bbox)
-        intrinsics = _form_text(form, "intrinsics", intrinsics)
+        texts = {name: _form_text(form, name, text) for name, text in texts.items()}
     else:
         _require_image_type(ctype)
         data = await _read_capped_body(request, limit)
-    box = parse_json(bbox, BOX, "bbox")
-    k = parse_json(intrinsics, INTRINSICS, "intrinsics")
+    box = parse_json(texts["box"], BOX, "box")
+    corners = parse_json(texts["bbox"], CORNERS, "bbox")
+    if box is not None and corners is not None:
+        raise ApiError(422, "invalid_request", "give the person's box once: box or bbox")
+    k = parse_json(texts["intrinsics"], INTRINSICS, "intrinsics")
     try:
         image = await run_in_threadpool(decode_image, data, settings.max_image_pixels)
     except ImageTooLarge as exc:
         raise ApiError(422, "invalid_image", f"{exc} (max_image_pixels)") from exc
-    return image_input(image, box, k, **options)
+    height, width = image.shape[:2]
+    bbox = corners if box is None else box.corners(width, height)
+    return image_input(image, bbox, k, **options)
 
 
 def too_large(what: str, limit: int) -> ApiError:
@@ -124,6 +147,18 @@ async def _read_form_image(form: FormData, limit: int) -> bytes:
     return await upload.read()
 
 
+def _refuse_unknown_fields(form: FormData) -> None:
+    """422 for a form field /v1/pose does not read (its document says the form has no others):
+    a field misnamed, or an option sent in the form that is read from the query, would
+    otherwise be left out without a word."""
+    unknown = sorted(set(form.keys()) - set(FORM_FIELDS))
+    if unknown:
+        known = ", ".join(name for name in FORM_FIELDS if name != "bbox")
+        raise ApiError(
+            422, "invalid_request", f"unknown form fields {unknown}: the form has {known}"
+        )
+
+
 def _form_text(form: FormData, name: str, default: str | None) -> str | None:
     """Text field `name` of the form, else `default` (a file under that name does not count)."""
     value = form.get(name)
@@ -147,15 +182,14 @@ async def _read_capped_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def parse_json(text: str | None, adapter: TypeAdapter, name: str) -> np.ndarray | None:
-    """A JSON form field or query parameter, validated by `adapter` -> float32 array, or None
-    when absent; 422 invalid_request naming what is wrong."""
+def parse_json(text: str | None, adapter: TypeAdapter[T], name: str) -> T | None:
+    """A JSON form field or query parameter validated by `adapter`, or None when absent; 422
+    invalid_request naming what is wrong."""
     if text is None or text == "":
         return None
     try:
-        value = adapter.validate_json(text)
+        return adapter.validate_json(text)
     except ValidationError as e:
         first = e.errors()[0]
         where = "".join(f"[{p}]" for p in first["loc"])
         raise ApiError(422, "invalid_request", f"{name}{where}: {first['msg']}") from e
-    return np.asarray(value, dtype=np.float32)

@@ -275,6 +275,18 @@ function capture(canvas, event) {
   }
 }
 
+// The API's box of photo px corners [x0, y0, x1, y1]: its centre and sides as fractions of the
+// photo's width and height.
+function fractionBox([x0, y0, x1, y1]) {
+  const { width, height } = state.picture;
+  return {
+    cx: (x0 + x1) / 2 / width,
+    cy: (y0 + y1) / 2 / height,
+    width: (x1 - x0) / width,
+    height: (y1 - y0) / height,
+  };
+}
+
 function orderedBox([ax, ay], [bx, by]) {
   return [Math.min(ax, bx), Math.min(ay, by), Math.max(ax, bx), Math.max(ay, by)].map(Math.round);
 }
@@ -286,7 +298,10 @@ function buildRequest() {
   const form = new FormData();
   form.append("image", state.file, state.fileName);
   const boxText = $("bbox").value.trim();
-  if (boxText) form.append("bbox", state.box ? JSON.stringify(state.box) : boxText);
+  if (state.box && state.picture) form.append("box", JSON.stringify(fractionBox(state.box)));
+  // Without the photo's size (a format this browser does not show), or as text that is not four
+  // numbers, the box goes as the corner form in px, for the service to place or to refuse.
+  else if (boxText) form.append("bbox", state.box ? JSON.stringify(state.box) : boxText);
   const intrinsics = $("intrinsics").value.trim();
   if (intrinsics) form.append("intrinsics", intrinsics);
   const headers = {};

@@ -27,6 +27,7 @@ from ds3d.util.paths import MODELS_DIR
 from ds3d.util.threads import intra_op_threads
 from ds3d_service.client import AsyncPoseClient, PoseClient, ServiceError
 from ds3d_service.engine import Engine
+from ds3d_service.schemas import PersonBox
 from ds3d_service.settings import Settings
 from tests.needs import missing
 
@@ -165,6 +166,15 @@ def test_bad_lift_inputs_get_json_errors(url, poses):
         assert_error(post_raw(url, "/v1/lift", raw, json_t), 422, "invalid_request")
     too_big = [[1e39, 1.0], *j[1:]]  # finite as a double, beyond the schema's bound
     assert_error(post_lift(url, {"items": [{"joints_2d": too_big}]}), 422, "invalid_request")
+    # JSON's types, strictly: a boolean is not a number, nor a number a flag.
+    k = [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, False]]
+    assert_error(
+        post_lift(url, {"items": [{"joints_2d": j, "intrinsics": k}]}), 422, "invalid_request"
+    )
+    flags = [1] * 14
+    assert_error(
+        post_lift(url, {"items": [{"joints_2d": j, "visible": flags}]}), 422, "invalid_request"
+    )
     # Bad neighbours did not spoil the service: a good item still gets its answer.
     assert post_lift(url, {"items": [good_item(poses)]}).status_code == 200
     assert httpx.get(f"{url}/readyz").status_code == 200
@@ -241,27 +251,59 @@ def test_pose_wrong_content_type_and_missing_field(url):
     assert_error(resp, 422, "invalid_request")
 
 
+def post_with(url, multipart: bool, **fields) -> httpx.Response:
+    """POST /v1/pose of jpeg() with `fields` (JSON text), as form fields beside the image or as
+    query parameters beside a raw body."""
+    if multipart:
+        return httpx.post(
+            f"{url}/v1/pose", files={"image": ("x.jpg", jpeg(), "image/jpeg")}, data=fields
+        )
+    return httpx.post(
+        f"{url}/v1/pose", params=fields, content=jpeg(), headers={"content-type": "image/jpeg"}
+    )
+
+
+@pytest.mark.parametrize("multipart", [False, True])
 @pytest.mark.parametrize(
     ("box", "why"),
+    [
+        ({"cx": 1.5, "cy": 0.5, "width": 0.2, "height": 0.5}, "box[cx]"),  # off the image
+        ({"cx": 0.5, "cy": 0.5, "width": 0.0, "height": 0.5}, "box[width]"),  # no area
+        ({"cx": 0.5, "cy": 0.5, "width": 0.2, "height": 2.5}, "box[height]"),  # too tall
+        ({"cx": 0.5, "cy": 0.5, "width": 0.2}, "box[height]: Field required"),
+        ({"cx": 0.5, "cy": 0.5, "width": True, "height": 0.5}, "box[width]"),
+        ([5, 5, 40, 40], "box: Input should be an object"),  # the corner form as box
+    ],
+)
+def test_pose_box_outside_its_schema_is_a_422_that_says_why(url, multipart, box, why):
+    """The box's schema says all its rules: what it refuses, the service refuses, naming the
+    field."""
+    resp = post_with(url, multipart, box=json.dumps(box))
+    assert_error(resp, 422, "invalid_request")
+    assert why in resp.json()["error"]["message"]
+
+
+@pytest.mark.parametrize("multipart", [False, True])
+@pytest.mark.parametrize(
+    ("bbox", "why"),
     [([50, 10, 5, 40], "no area"), ([5, 5, 5, 40], "no area"), ([900, 900, 990, 990], "outside")],
 )
-def test_pose_box_the_image_cannot_hold_is_a_422_that_says_why(url, box, why):
-    for multipart in (False, True):
-        if multipart:
-            resp = httpx.post(
-                f"{url}/v1/pose",
-                files={"image": ("x.jpg", jpeg(), "image/jpeg")},
-                data={"bbox": json.dumps(box)},
-            )
-        else:
-            resp = httpx.post(
-                f"{url}/v1/pose",
-                params={"bbox": json.dumps(box)},
-                content=jpeg(),
-                headers={"content-type": "image/jpeg"},
-            )
-        assert_error(resp, 422, "invalid_box")
-        assert why in resp.json()["error"]["message"]
+def test_pose_corner_bbox_the_image_cannot_hold_is_a_422_that_says_why(url, multipart, bbox, why):
+    """The corner form of earlier clients is still read, and checked by the library."""
+    resp = post_with(url, multipart, bbox=json.dumps(bbox))
+    assert_error(resp, 422, "invalid_box")
+    assert why in resp.json()["error"]["message"]
+
+
+def test_pose_takes_one_box_and_no_unknown_form_field(url):
+    box = {"cx": 0.5, "cy": 0.5, "width": 0.5, "height": 0.9}
+    both = post_with(url, True, box=json.dumps(box), bbox="[5, 5, 40, 40]")
+    assert_error(both, 422, "invalid_request")
+    assert "box or bbox" in both.json()["error"]["message"]
+    # an option sent in the form that the query carries would be left out without a word
+    unknown = post_with(url, True, people="all")
+    assert_error(unknown, 422, "invalid_request")
+    assert "['people']" in unknown.json()["error"]["message"]
 
 
 def test_pose_on_a_valid_image(url, engine):
@@ -279,8 +321,9 @@ def test_pose_on_a_valid_image(url, engine):
 def test_pose_matches_the_pipeline(pose_engine, serving):
     path = load_lsp(split="test").image_paths[0]
     image = read_image(path)
-    box = [5.0, 5.0, image.shape[1] - 5.0, image.shape[0] - 5.0]
-    k = [[600.0, 0.0, image.shape[1] / 2], [0.0, 600.0, image.shape[0] / 2], [0.0, 0.0, 1.0]]
+    height, width = image.shape[:2]
+    box = PersonBox(cx=0.5, cy=0.5, width=1 - 10 / width, height=1 - 10 / height)
+    k = [[600.0, 0.0, width / 2], [0.0, 600.0, height / 2], [0.0, 0.0, 1.0]]
     pipeline = pose_engine.pipeline
     # Identical by construction: a request alone in its batch makes the same library call as
     # this reference (one image, its people and min_score), on as many intra-op threads. Only
@@ -328,16 +371,20 @@ def test_pose_matches_the_pipeline(pose_engine, serving):
         )
         placed = np.asarray(person["joints_3d_camera"]) * [1, -1, -1]
         np.testing.assert_allclose(forward_kinematics(motion)[0], placed, atol=0.05)
-        # Raw JPEG body, box and intrinsics as query parameters.
-        params = {"bbox": json.dumps(box), "intrinsics": json.dumps(k)}
-        raw = httpx.post(
-            f"{u}/v1/pose", params=params, content=path.read_bytes(),
-            headers={"content-type": "image/jpeg"}, timeout=60,
-        )  # fmt: skip
-        assert raw.status_code == 200, raw.text
+        # Raw JPEG body, box and intrinsics as query parameters: the box made the corners it
+        # says, the same as the corner form of earlier clients gives.
+        corners = box.corners(width, height)
         with intra_op_threads(threads):
-            ref = pipeline.estimate([image], [np.asarray(box)], intrinsics=np.asarray(k)[None])
-        np.testing.assert_allclose(raw.json()["joints_3d"], ref.joints_3d[0].numpy(), atol=1e-2)
+            ref = pipeline.estimate([image], [corners], intrinsics=np.asarray(k)[None])
+        for name, value in (("box", box.model_dump_json()), ("bbox", json.dumps(corners.tolist()))):
+            params = {name: value, "intrinsics": json.dumps(k)}
+            raw = httpx.post(
+                f"{u}/v1/pose", params=params, content=path.read_bytes(),
+                headers={"content-type": "image/jpeg"}, timeout=60,
+            )  # fmt: skip
+            assert raw.status_code == 200, raw.text
+            answer = raw.json()["joints_3d"]
+            np.testing.assert_allclose(answer, ref.joints_3d[0].numpy(), atol=1e-2)
         # Concurrent numpy images (sent as PNG) share batches and keep their own results.
         before = metric(u, "ds3d_batch_size", {"queue": "pose"}).get("ds3d_batch_size_count", 0)
         many = client.estimate_many([image, image[:, ::-1].copy()] * 2, concurrency=4)

@@ -16,7 +16,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ds3d_service.client import AsyncPoseClient, PoseClient, ServiceError, encode_png
+from ds3d_service.client import (
+    AsyncPoseClient,
+    PoseClient,
+    ServiceError,
+    encode_png,
+    person_box,
+)
 
 
 def lift_answer(request: httpx.Request) -> httpx.Response:
@@ -194,10 +200,39 @@ def test_estimate_sends_a_numpy_image_as_png_with_bbox():
     img = np.random.default_rng(0).integers(0, 255, (6, 9, 3), dtype=np.uint8)
     res = client.estimate(img, bbox=[1, 2, 3, 4])
     assert seen["ctype"].startswith("multipart/form-data")
-    assert b"\x89PNG" in seen["body"] and b"[1.0, 2.0, 3.0, 4.0]" in seen["body"]
+    # the corners as the API's box: centre and sides as fractions of the 9 x 6 px image
+    sent = json.dumps({"cx": 2 / 9, "cy": 3 / 6, "width": 2 / 9, "height": 2 / 6})
+    assert b"\x89PNG" in seen["body"] and sent.encode() in seen["body"]
     assert res.joints_2d.shape == (14, 2) and res.confidence.shape == (14,)
     assert res.facing_camera == 0.25
     assert res.joint_set == "up"
+
+
+def test_a_box_of_an_image_file_is_a_fraction_of_its_upright_size(tmp_path):
+    """A photo stored 40 x 20 px and turned a quarter by its EXIF orientation is 20 x 40 px
+    upright, as the service reads it: the box's fractions are of that."""
+    exif = Image.Exif()
+    exif[0x0112] = 6  # Orientation: turn 90 degrees clockwise
+    path = tmp_path / "turned.jpg"
+    Image.new("RGB", (40, 20)).save(path, exif=exif)
+    sent = {}
+
+    def handler(request: httpx.Request):
+        sent["body"] = request.read()
+        return httpx.Response(503, json={"error": {"code": "busy", "message": "stop here"}})
+
+    client = PoseClient("http://svc", retries=0, transport=httpx.MockTransport(handler))
+    with pytest.raises(ServiceError):
+        client.estimate(path, bbox=[2, 4, 12, 36])
+    assert json.dumps(person_box([2, 4, 12, 36], 20, 40)).encode() in sent["body"]
+    assert person_box([2, 4, 12, 36], 20, 40) == {
+        "cx": 0.35,
+        "cy": 0.5,
+        "width": 0.5,
+        "height": 0.8,
+    }
+    with pytest.raises(ValueError, match="not x, y, width, height"):
+        client.estimate(path, bbox=[2, 4, 10, 4])  # no height: x, y, width, height mistaken
 
 
 def test_encode_png_round_trips():
