@@ -487,11 +487,18 @@ function jointSetText(name) {
   return set ? `${name} (${set.description})` : name;
 }
 
+// The facing said only where the model is sure: on held-out LSP train images (im0701-im1000)
+// whose annotation shows which way the person faces, its facing is right 95 % of the time at
+// P(faces the camera) >= FACING_SURE or <= 1 - FACING_SURE (four in five of them), and not
+// much better than a guess nearer 0.5 (45-70 % face the camera at 0.3-0.7). Either way the
+// pose is drawn, in 2D and 3D, as facing the likelier way.
+const FACING_SURE = 0.8;
+
 function facingText(p) {
-  // near 0.5 the model cannot tell front from back, and so left from right
-  if (p >= 0.65) return `${percent(p)} (faces the camera)`;
-  if (p <= 0.35) return `${percent(p)} (faces away)`;
-  return `${percent(p)} (unsure: left and right may be swapped)`;
+  const way = p >= 0.5 ? "the camera" : "away";
+  const sure = Math.max(p, 1 - p);
+  if (sure >= FACING_SURE) return `faces ${way} (${percent(sure)})`;
+  return `unsure (${percent(sure)} that it faces ${way}, as drawn): left and right may be swapped`;
 }
 
 function showFacts(answer) {
@@ -504,7 +511,7 @@ function showFacts(answer) {
     answer.people.forEach((person, i) => {
       const what = [
         `score ${percent(person.score)}`,
-        `facing the camera ${facingText(person.facing_camera)}`,
+        `facing: ${facingText(person.facing_camera)}`,
         `joint set ${jointSetText(person.joint_set)}`,
       ].join(", ");
       rows.push([`Person ${i + 1}`, what]);
@@ -514,7 +521,7 @@ function showFacts(answer) {
       ? `yes (score ${percent(answer.score)})`
       : "no: nobody scored high enough; this is the likeliest candidate's pose, probably not a person's";
     rows.push(["Person found", found]);
-    rows.push(["Facing the camera", facingText(answer.facing_camera)]);
+    rows.push(["Facing", facingText(answer.facing_camera)]);
     rows.push(["Joint set", jointSetText(answer.joint_set)]);
   }
   rows.push(["Photo", photoDescription()]);
@@ -680,46 +687,50 @@ function drawUserBox(ctx, box, scale, size) {
 //
 // Every person where it stands: its joints in the camera's frame (joints_3d_camera: x right,
 // y down, z away, mm). The view's world is y-up: X = x, Y = -y, Z = -z, moved so that the middle
-// of the people's hips (to the nearest tick) is the grid's centre, standing on the ground
-// (Y = 0) under the lowest joint; the axes read the camera's x and z.
+// of the grid is the origin, the people standing on the ground (Y = 0) under the lowest joint;
+// the axes read the camera's x and z. The grid reaches a little past the people and the eye
+// stands as near as shows them and it (fitDistance): one person fills most of the view, and
+// several people all show.
 
 // The ground's ticks: the first step that labels its side in about 5 ticks; the grid at half
 // of it. The height is ticked every HEIGHT_TICK_MM.
 const TICKS_MM = [500, 1000, 2000, 5000, 10000];
 const HEIGHT_TICK_MM = 500;
+const GRID_MARGIN_MM = 150; // the grid's reach past the outermost joints (before its steps)
 const FIELD_OF_VIEW = (25 * Math.PI) / 180; // narrow: little distortion near the eye
 const NEAREST_MM = 1500; // the eye's distance, as near and as far as the zoom goes
 const FARTHEST_MM = 30000;
 
 function placeScene(people) {
   if (!people.length) return null;
-  const [right, left] = SKELETON.hips;
-  const hips = people.map(({ joints_3d_camera: joints }) =>
-    [0, 2].map((axis) => (joints[right][axis] + joints[left][axis]) / 2),
-  );
-  const span = (k) => [Math.min(...hips.map((h) => h[k])), Math.max(...hips.map((h) => h[k]))];
-  const [[xLow, xHigh], [zLow, zHigh]] = [span(0), span(1)];
-  const half = Math.max(xHigh - xLow, zHigh - zLow) / 2 + 1500; // about half the ground's side
+  const joints = people.flatMap((person) => person.joints_3d_camera);
+  const span = (k) => [Math.min(...joints.map((p) => p[k])), Math.max(...joints.map((p) => p[k]))];
+  const [[xLow, xHigh], [zLow, zHigh]] = [span(0), span(2)];
+  const half = Math.max(xHigh - xLow, zHigh - zLow) / 2 + GRID_MARGIN_MM;
   const tick = TICKS_MM.find((t) => half / t <= 2.5) ?? TICKS_MM[TICKS_MM.length - 1];
-  // camera x and z at the grid's centre, on a tick
-  const origin = [xLow + xHigh, zLow + zHigh].map((twice) => Math.round(twice / 2 / tick) * tick);
-  const skeletons = people.map(({ joints_3d_camera: joints }) =>
-    joints.map(([x, y, z]) => [x - origin[0], -y, -(z - origin[1])]),
+  const step = tick / 2;
+  // the grid's edges (camera x and z): GRID_MARGIN_MM past the outermost joints, out to a line
+  const edges = [
+    [xLow, xHigh],
+    [zLow, zHigh],
+  ].map(([low, high]) => [
+    Math.floor((low - GRID_MARGIN_MM) / step) * step,
+    Math.ceil((high + GRID_MARGIN_MM) / step) * step,
+  ]);
+  const origin = edges.map(([low, high]) => (low + high) / 2); // the grid's centre
+  const skeletons = people.map(({ joints_3d_camera: points }) =>
+    points.map(([x, y, z]) => [x - origin[0], -y, -(z - origin[1])]),
   );
   const floor = Math.min(...skeletons.flat().map((p) => p[1]));
   for (const skeleton of skeletons) for (const p of skeleton) p[1] -= floor;
-  const top = Math.max(...skeletons.flat().map((p) => p[1]));
-  // the grid reaches a metre past the outermost joints, in whole grid steps
-  const reach = (axis) => Math.max(...skeletons.flat().map((p) => Math.abs(p[axis])));
-  const step = tick / 2;
-  const grid = (mm) => Math.ceil((mm + 1000) / step) * step;
   return {
     skeletons,
     origin,
     tick,
-    extentX: grid(reach(0)),
-    extentZ: grid(reach(2)),
-    height: Math.max(top, 1000),
+    step,
+    extentX: (edges[0][1] - edges[0][0]) / 2,
+    extentZ: (edges[1][1] - edges[1][0]) / 2,
+    height: Math.max(...skeletons.flat().map((p) => p[1])),
   };
 }
 
@@ -747,26 +758,33 @@ function currentView() {
   return { ...view, distance: view.distance ?? state.fit };
 }
 
-// The nearest eye distance, at the default angles, from which the grid, the axes and the
-// people all show with a margin: small and big scenes, wide and narrow canvases alike.
+// The nearest eye distance, at the default angles, from which the people, the grid and the
+// axes' numbers all show with a margin (the axes' titles are kept on the canvas where they are
+// drawn, onCanvas): with the grid reaching a little past the people, they fill the view, small
+// and big scenes, wide and narrow canvases alike.
 function fitDistance(canvas, scene) {
   const { extentX: ex, extentZ: ez } = scene;
   const corners = [-ex, ex].flatMap((x) => [-ez, ez].map((z) => [x, 0, z]));
-  const { labels, titles } = axisLabels(scene);
-  const points = [...corners, ...[...labels, ...titles].map(([p]) => p), ...scene.skeletons.flat()];
-  const margin = 0.09 * Math.min(canvas.width, canvas.height); // labels reach past their point
-  const inside = ([x, y]) => x > margin && x < canvas.width - margin && y > margin && y < canvas.height - margin;
+  const numbers = axisLabels(scene).labels.map(([p]) => p);
+  const points = [...corners, ...numbers, ...scene.skeletons.flat()];
+  const margin = 0.04 * Math.min(canvas.width, canvas.height); // labels reach past their point
   let distance = NEAREST_MM;
   while (distance < FARTHEST_MM) {
     const project = projector(canvas, scene, { ...DEFAULT_VIEW, distance });
-    if (points.map(project).every((p) => p && inside(p))) break;
+    if (points.map(project).every((p) => p && inCanvas(canvas, p, margin))) break;
     distance *= 1.05;
   }
   return distance;
 }
 
+// Whether canvas px [x, y] lies inside the canvas, at least `margin` px from its edges.
+function inCanvas(canvas, [x, y], margin = 0) {
+  return x >= margin && x <= canvas.width - margin && y >= margin && y <= canvas.height - margin;
+}
+
+// The height axis's top: the tick nearest the people's height.
 function axisTop(scene) {
-  return Math.ceil(scene.height / HEIGHT_TICK_MM) * HEIGHT_TICK_MM;
+  return Math.max(1, Math.round(scene.height / HEIGHT_TICK_MM)) * HEIGHT_TICK_MM;
 }
 
 function sizeCanvas3d(canvas) {
@@ -815,11 +833,11 @@ function segment(ctx, a, b) {
 function drawGrid(ctx, project, scene, ratio) {
   const { extentX: ex, extentZ: ez } = scene;
   ctx.lineWidth = ratio;
-  for (let x = -ex; x <= ex; x += scene.tick / 2) {
+  for (let x = -ex; x <= ex; x += scene.step) {
     ctx.strokeStyle = x === 0 ? "#a9a9a2" : "#d6d6d0";
     segment(ctx, project([x, 0, -ez]), project([x, 0, ez]));
   }
-  for (let z = -ez; z <= ez; z += scene.tick / 2) {
+  for (let z = -ez; z <= ez; z += scene.step) {
     ctx.strokeStyle = z === 0 ? "#a9a9a2" : "#d6d6d0";
     segment(ctx, project([-ex, 0, z]), project([ex, 0, z]));
   }
@@ -835,19 +853,23 @@ function axisLabels(scene) {
   const top = axisTop(scene);
   const out = LABEL_OFFSET_MM;
   const labels = [];
-  // the corner's own tick is the z axis's: two numbers there would overlap
   const { tick, origin: [x0, z0] } = scene;
-  const firstX = -ex + (ex % tick || tick);
-  for (let x = firstX; x <= ex; x += tick) labels.push([[x, 0, ez + out], String(x + x0)]);
-  for (let z = -ez + (ez % tick); z <= ez; z += tick) {
-    labels.push([[-ex - out, 0, z], String(z0 - z)]);
+  // the camera's x and z at the ticks within [low, high] of the grid, as [grid's, camera's]
+  const ticks = (low, high, camera) =>
+    Array.from({ length: Math.floor((high - low) / scene.step) + 1 }, (_, i) => low + i * scene.step)
+      .map((at) => [at, camera(at)])
+      .filter(([, value]) => value % tick === 0);
+  // the corner's own tick is the z axis's: two numbers there would overlap
+  for (const [x, value] of ticks(-ex, ex, (x) => x + x0).filter(([x]) => x > -ex)) {
+    labels.push([[x, 0, ez + out], String(value)]);
   }
+  for (const [z, value] of ticks(-ez, ez, (z) => z0 - z)) labels.push([[-ex - out, 0, z], String(value)]);
   for (let y = HEIGHT_TICK_MM; y <= top; y += HEIGHT_TICK_MM) {
     labels.push([[-ex - out, y, -ez - out], String(y)]);
   }
   const titles = [
     [[ex + 2.5 * out, 0, ez + out], "x (mm)"],
-    [[-ex - out, 0, ez + 2.5 * out], "z (mm)"],
+    [[-ex - out, 0, -ez - 2.5 * out], "z (mm)"], // past the far end, where z grows
     [[-ex, top + 1.5 * out, -ez], "height (mm)"],
   ];
   return { labels, titles };
@@ -864,16 +886,24 @@ function drawAxes(ctx, project, scene, ratio, font) {
   ctx.textAlign = "center";
   ctx.textBaseline = "middle";
   const { labels, titles } = axisLabels(scene);
-  for (const [weight, list] of [["", labels], ["bold ", titles]]) {
+  for (const [weight, list, keep] of [["", labels, false], ["bold ", titles, true]]) {
     ctx.font = `${weight}${font}px system-ui, sans-serif`;
     for (const [point, text] of list) {
       const p = project(point);
-      if (p) ctx.fillText(text, p[0], p[1]);
+      if (p) ctx.fillText(text, ...(keep ? onCanvas(ctx, text, p, font) : p));
     }
   }
 }
 
-// Limbs far to near (painter's order), then the joints; returns the number of joints drawn.
+// Where to centre `text` near canvas px p so that all of it shows (font px high).
+function onCanvas(ctx, text, [x, y], font) {
+  const half = ctx.measureText(text).width / 2 + font / 2;
+  const clamp = (v, low, high) => Math.min(Math.max(v, low), high);
+  return [clamp(x, half, ctx.canvas.width - half), clamp(y, font, ctx.canvas.height - font)];
+}
+
+// Limbs far to near (painter's order), then the joints; returns the number of joints that show
+// (drawn on the canvas).
 function drawSkeletons3d(ctx, project, scene, ratio) {
   const limbs = [];
   const joints = [];
@@ -901,7 +931,7 @@ function drawSkeletons3d(ctx, project, scene, ratio) {
     ctx.fill();
     ctx.stroke();
   }
-  return joints.length;
+  return joints.filter(({ p }) => inCanvas(ctx.canvas, p)).length;
 }
 
 // Turning and zooming: one pointer (mouse, pen or finger) turns, two fingers pinch to zoom,
