@@ -16,7 +16,7 @@ TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 PIP_TOOLS := pip-tools==7.6.2
 LOCKS := requirements/dev.txt requirements/service.txt requirements/ray.txt
 
-.PHONY: install lock test lint audit eval bench build-db serve clean
+.PHONY: install lock test test-fast lint audit eval floors bench build-db serve clean
 
 $(STAMP): pyproject.toml requirements/dev.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -51,6 +51,10 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q
 
+# The quick loop: the suite without the tests marked slow (pyproject.toml's markers).
+test-fast: $(STAMP)
+	$(BIN)/pytest -q -m "not slow"
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
@@ -63,6 +67,13 @@ audit: $(STAMP)
 
 eval: $(STAMP)
 	$(BIN)/ds3d eval h36m --threads 1 --variants clean --out docs/results/h36m.json
+
+# The figures the accuracy tests compare with, recorded again after a change that moves them on
+# purpose: LSP test into the model's manifest (tests/image2d/test_accuracy.py), Human3.6M as
+# `make eval` (tests/test_lifter.py), finding people on 24 canvases (tests/evaluation/test_people.py).
+floors: eval
+	$(BIN)/ds3d --quiet eval lsp --write-manifest
+	$(BIN)/ds3d --quiet eval people --count 24 --out docs/results/people-24.json
 
 bench: $(STAMP)
 	$(BIN)/ds3d bench lift

@@ -22,6 +22,17 @@ def data_dir():
     return root
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch on one intra-op thread for the module's tests (then as before). The accuracy floors
+    measure the same figures on 1 and 2 threads, and one is the quickest on a machine whose
+    cores other work shares."""
+    from ds3d.util.threads import intra_op_threads
+
+    with intra_op_threads(1):
+        yield
+
+
 @pytest.fixture(scope="session")
 def lifter():
     """The bundled default lifter (models/posedb, Human3.6M S1-S9): what users get."""

@@ -1,4 +1,5 @@
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -8,19 +9,21 @@ from ds3d.errors import InvalidPose
 from ds3d.evaluation.h36m import evaluate, protocol_cases
 from ds3d.lifter import LifterConfig
 from ds3d.skeleton import BONE_NAMES, HEAD_TOP, JOINT_SETS, L_HIP, L_WRIST, R_ANKLE, R_HIP
+from ds3d.util.paths import PROJECT_ROOT
 
 RESCALED = {"pelvis": 0.5, "thigh": 1.1, "shin": 1.1, "upper_arm": 0.9, "head": 1.3}
 
-# Measured with the bundled database on this subset of 310 poses: 51.9 mm (53.5 mm on the full
-# protocol, docs/RESULTS.md; the paper reports 70.5 mm). The margin absorbs platform differences
-# in floating point and in the approximate index, not a real regression.
-SUBSET_POSE_ERROR_MM = 51.9
-MARGIN_MM = 4.0
-# The same subset placed in the camera: root position error 214.4 mm and camera-space MPJPE
-# 224.4 mm (224.4 and 234.1 mm on the full protocol), people about 5 m away.
-SUBSET_MRPE_MM = 214.4
-SUBSET_CAMERA_MPJPE_MM = 224.4
-PLACEMENT_MARGIN_MM = 25.0
+# The Human3.6M protocol's figures of the bundled lifter as recorded by `make eval` (`ds3d eval
+# h36m --threads 1 --variants clean --out docs/results/h36m.json`): the test measures the same
+# protocol (S11, every 64th frame, ground-truth 2D: 3,712 poses) and compares. A change that
+# moves them is recorded by running that command again.
+RECORDED = PROJECT_ROOT / "docs" / "results" / "h36m.json"
+# How far another machine may measure from the recorded figure. The figures are the same on 1
+# and 2 threads; between two machines (this one's and the recording's, another CPU) they differed
+# by 0.02 mm (pose error), 0.04 mm (MRPE) and 0.03 mm (camera-space MPJPE), last bits of float32
+# sums reaching the index's choice of neighbours. Disabling the neighbour weighting costs 2.3 mm.
+POSE_ERROR_TOLERANCE_MM = 0.3  # a third of the millimetre a regression would cost
+PLACEMENT_TOLERANCE_MM = 1.0  # of about 225 mm, people about 5 m away
 
 
 @pytest.fixture(scope="module")
@@ -29,17 +32,36 @@ def cases(data_dir):
     return all_cases.subset(np.arange(0, len(all_cases), 12))  # ~300 poses, every action
 
 
-def test_accuracy_on_s11_with_ground_truth_2d_does_not_regress(lifter, cases):
-    report = evaluate(lifter, cases)
-    assert len(cases) > 250
-    assert report["pose_error"] <= SUBSET_POSE_ERROR_MM + MARGIN_MM, report
+@pytest.fixture(scope="module")
+def protocol(lifter, data_dir, one_thread) -> tuple[dict, dict]:
+    """(measured, recorded): the clean protocol's report here, and the one `make eval` wrote."""
+    recorded = json.loads(RECORDED.read_text())["variants"]["clean"]
+    measured = evaluate(lifter, protocol_cases(stride=64))
+    assert measured["frames"] == recorded["frames"]
+    return measured, recorded
 
 
-def test_people_are_placed_in_the_camera_where_they_stand(lifter, cases):
-    """With the camera's intrinsics, root_position is the hip midpoint in camera coordinates."""
-    report = evaluate(lifter, cases)
-    assert report["mrpe"] <= SUBSET_MRPE_MM + PLACEMENT_MARGIN_MM, report
-    assert report["camera_mpjpe"] <= SUBSET_CAMERA_MPJPE_MM + PLACEMENT_MARGIN_MM, report
+def as_recorded(measured: dict, recorded: dict, figure: str, tolerance: float) -> None:
+    """measured[figure] within `tolerance` of the recorded one, either way: worse is a
+    regression, better a record to bring up to date."""
+    difference = measured[figure] - recorded[figure]
+    assert abs(difference) <= tolerance, (
+        f"{figure} {measured[figure]:.2f} mm against {recorded[figure]:.2f} mm in {RECORDED}: "
+        "if the change is meant, record it with `make eval`"
+    )
+
+
+@pytest.mark.slow
+def test_accuracy_on_s11_with_ground_truth_2d_is_as_recorded(protocol):
+    as_recorded(*protocol, "pose_error", POSE_ERROR_TOLERANCE_MM)
+
+
+@pytest.mark.slow
+def test_people_are_placed_in_the_camera_where_they_stand(protocol):
+    """With the camera's intrinsics, root_position is the hip midpoint in camera coordinates:
+    the root position error (MRPE) and the joints' error in the camera as recorded."""
+    for figure in ("mrpe", "camera_mpjpe"):
+        as_recorded(*protocol, figure, PLACEMENT_TOLERANCE_MM)
 
 
 def test_the_smaller_of_two_people_in_one_photo_stands_further(lifter, cases):

@@ -200,12 +200,12 @@ def test_energy_selection_and_single_set_variants_run(pipeline, images):
     assert bool(torch.isfinite(res.joints_3d).all())
 
 
-# Measured with the bundled model on LSP test im1001-im1032 (1 thread): PCK@0.2 80.6 -> 79.7 %,
-# mean error 9.19 -> 9.21 px; on all 1000 test images: docs/RESULTS.md, pipeline. 32 images are
-# too few for either to move reliably: with earlier 2D models the same images went 81.5 -> 82.4 %
-# and 20.54 -> 20.77 px. The gates catch a broken refinement (a bug that drew weak joints off the
-# image cost 7 px on held-out images), not noise.
-REFINED_PCK, MARGIN = 0.7969, 0.03
+# The refinement against the 2D stage's own answer on the same images: on LSP test im1001-im1032
+# it moved PCK@0.2 79.91 -> 79.46 % and the mean error 9.56 -> 9.68 px with the int8 joint
+# network, 79.46 -> 79.69 % and 9.69 -> 9.59 px in float32 (on all 1000 images: docs/RESULTS.md,
+# pipeline). 32 images are too few for either to move reliably; the gates catch a broken
+# refinement (a bug that drew weak joints off the image cost 7 px on held-out images), not noise.
+PCK_DROP = 0.02  # 9 of the 448 joints
 ERROR_TOLERANCE_PX = 0.5
 
 
@@ -228,7 +228,7 @@ def test_bundled_model_refinement_does_not_make_2d_notably_worse(data_dir):
     refined = torch.cat([r.joints_2d for r in results])
     error = float(pixel_error(refined, gt).mean())
     assert error <= float(pixel_error(initial, gt).mean()) + ERROR_TOLERANCE_PX
-    assert float(pck(refined, gt).mean()) >= REFINED_PCK - MARGIN
+    assert float(pck(refined, gt).mean()) >= float(pck(initial, gt).mean()) - PCK_DROP
     assert bool(torch.isfinite(torch.cat([r.joints_3d for r in results])).all())
 
 
