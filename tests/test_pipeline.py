@@ -232,6 +232,7 @@ def test_bundled_model_refinement_does_not_make_2d_notably_worse(data_dir):
     assert bool(torch.isfinite(torch.cat([r.joints_3d for r in results])).all())
 
 
+@pytest.mark.slow
 def test_the_bundled_confidences_say_how_often_joints_are_right(data_dir):
     """A confidence is the probability that the joint lies within PCK@0.2 of the truth
     (ds3d.confidence, fitted on held-out LSP train images): on LSP test images searched, about

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from ds3d.cli import main as cli
 
 
+@pytest.mark.slow
 def test_bench_pipeline_reports_searched_and_boxed_images_on_its_device(
     model_dir, data_dir, tmp_path
 ):

@@ -88,6 +88,7 @@ def test_set_takes_a_tuple_as_comma_separated_values():
         field_overrides(TrainConfig, ["jointnet_widths=32,64,wide"])
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("data_dir")
 def test_train_2d_without_network_then_train_jointnet_with_overrides(tmp_path):
     model = tmp_path / "image2d"

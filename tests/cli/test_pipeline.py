@@ -27,6 +27,7 @@ def _clip(path, image, count=4, fps=12.0):
     writer.release()
 
 
+@pytest.mark.slow
 def test_predict_streams_a_folder_and_a_video_and_writes_every_output(data_dir, tmp_path):
     paths = load_lsp(split="test").image_paths[:3]
     folder = tmp_path / "photos"
@@ -89,6 +90,7 @@ def test_predict_streams_a_folder_and_a_video_and_writes_every_output(data_dir, 
     assert clip.num_frames == 2 and clip.frame_time == pytest.approx(2 / 12.0, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
     from ds3d import predict
     from ds3d.pipeline import Pipeline
@@ -109,6 +111,7 @@ def test_predict_from_python_yields_results_that_plot(model_dir, data_dir):
     assert results[1].plot(with_3d=False).shape == array.shape
 
 
+@pytest.mark.slow
 def test_predict_refuses_a_box_an_image_cannot_hold_and_goes_on(model_dir, data_dir, tmp_path):
     image = load_lsp(split="test").image_paths[0]
     out = tmp_path / "out"
@@ -140,6 +143,7 @@ def test_eval_lsp_pipeline_scores_the_searched_pipeline_beside_the_crops(data_di
     assert 0.0 <= report["results"]["searched"]["pck@0.2"] <= 1.0
 
 
+@pytest.mark.slow
 def test_predict_on_worker_processes_writes_what_one_process_does(data_dir, tmp_path):
     """--workers 2: the batch split between two processes of the bundled models; the same 2D
     joints per image as one process (the 3D within the fit's rounding)."""
@@ -161,6 +165,7 @@ def test_predict_on_worker_processes_writes_what_one_process_does(data_dir, tmp_
         np.testing.assert_allclose(pooled["joints_3d"], alone["joints_3d"], atol=1.0)
 
 
+@pytest.mark.slow
 def test_eval_people_fits_the_person_score_on_more_canvases_when_asked(data_dir, tmp_path):
     """`--calibrate-also` adds another split's canvases, drawn alike, to the person score's fit
     (calibration_pooled) and leaves the run's own figures and fit as they are; `--plot` draws

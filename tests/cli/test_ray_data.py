@@ -91,6 +91,7 @@ def test_parse_actors():
             parse_actors(bad)
 
 
+@pytest.mark.slow
 def test_the_cli_imports_no_ray_and_batch_says_how_to_install_it(tmp_path, monkeypatch):
     code = "import sys; from ds3d.cli.parser import build_parser; build_parser(); "
     code += "import ds3d.runners.ray_data; assert 'ray' not in sys.modules"

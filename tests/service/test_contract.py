@@ -45,6 +45,7 @@ def operations(api_schema) -> list:
     return [result.ok() for result in api_schema.get_all_operations()]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", list(schemathesis.GenerationMode), ids=lambda m: m.value)
 def test_every_answer_keeps_the_contract(api, mode):
     url, api_schema = api

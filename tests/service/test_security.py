@@ -124,6 +124,7 @@ def test_without_keys_every_caller_is_served(engine, serving):
         assert httpx.get(f"{url}/metrics").status_code == 200
 
 
+@pytest.mark.slow
 def test_no_keys_with_keys_required_refuses_to_start(tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith("DS3D_API_KEYS")}
     command = [sys.executable, "-m", "ds3d_service", "--require-api-keys", "true", "--port", "0"]
@@ -239,6 +240,7 @@ def test_the_sdk_sends_its_key(keyed):
     assert info.value.status == 401  # not retried: a key does not appear by waiting
 
 
+@pytest.mark.slow
 def test_no_installed_dependency_has_a_known_vulnerability(tmp_path):
     """pip-audit of this environment (the project itself, editable, left out). Skipped where its
     advisory source cannot answer: `make audit` writes the last result to docs/security/."""

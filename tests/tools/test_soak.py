@@ -67,6 +67,7 @@ def test_a_short_soak_answers_everything_and_leaks_no_descriptors(server, load_i
     assert memory["open_fds_end"] <= memory["open_fds_after_warmup"] + 4, memory
 
 
+@pytest.mark.slow  # its server starts in about 12 s
 def test_the_service_runs_under_jemalloc_where_installed(server):
     if find_jemalloc() is None:
         missing("jemalloc not installed (Debian: apt-get install libjemalloc2)")

@@ -31,6 +31,7 @@ def test_small_training_writes_a_loadable_model(small_model):
     assert manifest["train_seconds"]["jointnet"] > 0
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("data_dir")
 def test_without_a_joint_network_the_facing_cnn_is_trained(tmp_path, monkeypatch):
     monkeypatch.setitem(cli_image2d.SMALL, "jointnet_epochs", 0)
@@ -41,6 +42,7 @@ def test_without_a_joint_network_the_facing_cnn_is_trained(tmp_path, monkeypatch
     assert res.timings["jointnet"] == 0 and 0 <= float(res.facing_camera[0]) <= 1
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("data_dir")
 def test_observer_centric_model_trains_and_decides_facing(tmp_path):
     argv = ["train-2d", "--small", "--no-eval", "--observer-labels", "--out", str(tmp_path)]
@@ -53,6 +55,7 @@ def test_observer_centric_model_trains_and_decides_facing(tmp_path):
     assert ((res.facing_camera >= 0) & (res.facing_camera <= 1)).all()
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("data_dir")
 @pytest.mark.parametrize(("sigma", "n_context"), [("6", 2 * 14), ("none", 14)])
 def test_layer_2_reads_the_psm_pose_or_the_maps_alone(tmp_path, sigma, n_context):

@@ -145,6 +145,7 @@ def test_loss_counts_only_masked_joints_and_learns():
     assert grad[0, 3, 3, 3] < 0  # the joint's cell (12 / STRIDE = 3) is pushed up
 
 
+@pytest.mark.slow
 def test_training_lowers_the_loss_on_a_few_windows():
     torch.manual_seed(1)
     windows = torch.rand(8, 3, WINDOW, WINDOW).half()
