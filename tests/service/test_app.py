@@ -495,7 +495,7 @@ def test_people_all_and_nobody(engine, serving, data_dir):
 
 
 @pytest.mark.slow
-def test_pose_on_worker_processes_answers_as_one_process(engine, serving):
+def test_pose_on_worker_processes_answers_as_one_process(engine, serving, data_dir):
     """DS3D_WORKERS=2: /v1/pose's batches split between two processes of the bundled models
     answer as the pipeline of this process does (2D alike, 3D up to the fit's rounding, which
     depends on how many people are lifted together)."""
