@@ -27,9 +27,10 @@ from ds3d_service.settings import Settings
 
 T = TypeVar("T")
 
-# The multipart form's fields: the image and the JSON-valued options (bbox, the corner form of
-# box, outside the OpenAPI document).
-FORM_FIELDS = ("image", "box", "bbox", "intrinsics")
+# The JSON-valued options (bbox, the corner form of box, outside the OpenAPI document), query
+# parameters or form fields; the form's fields are the image and these.
+JSON_FIELDS = ("box", "bbox", "intrinsics")
+FORM_FIELDS = ("image", *JSON_FIELDS)
 
 # Room for the multipart envelope and the small form fields around the image.
 MULTIPART_OVERHEAD_BYTES = 64 * 1024
@@ -100,7 +101,7 @@ async def read_pose_input(request: Request, settings: Settings, **options) -> Im
     cannot hold, ...)."""
     limit = settings.max_image_bytes
     ctype = request.headers.get("content-type", "").lower()
-    texts = {name: request.query_params.get(name) for name in FORM_FIELDS[1:]}
+    texts = {name: request.query_params.get(name) for name in JSON_FIELDS}
     _refuse_declared_oversize(request, limit)
     if ctype.startswith("multipart/form-data"):
         form = await request.form(max_files=1, max_fields=8)
