@@ -48,8 +48,10 @@ class Model2D:
     jointnet_int8: nn.Module | None = None
 
 
-def load_model(model_dir: Path) -> Model2D:
-    """The model in `model_dir`. Raises DataFormatError when it is missing or malformed."""
+def load_model(model_dir: Path, int8: bool = True) -> Model2D:
+    """The model in `model_dir`; int8: with its int8 joint network where it has one (False:
+    without, to quantize the float one anew). Raises DataFormatError when it is missing or
+    malformed."""
     manifest = read_manifest(model_dir)
     try:
         params = EstimatorParams(**manifest["params"])
@@ -58,21 +60,20 @@ def load_model(model_dir: Path) -> Model2D:
         mixtures = PairwiseMixtures.from_state_dict(state)
         facing = manifest.get("facing")
         facing = load_facing(model_dir / facing) if facing else None
-        jointnet, int8 = manifest.get("jointnet"), manifest.get("jointnet_int8")
+        jointnet, int8_file = manifest.get("jointnet"), manifest.get("jointnet_int8")
         if jointnet:
             shape = manifest["jointnet_shape"]
             shape = JointNetShape(tuple(shape["widths"]), tuple(shape["blocks"]))
             jointnet = load_jointnet(model_dir / jointnet, shape)
-        if int8 and jointnet and int8_available():
+        quantized = None
+        if int8 and int8_file and jointnet and int8_available():
             with warnings.catch_warnings():  # torch's notices on quantized tensors' storage
                 warnings.simplefilter("ignore")
-                state = torch.load(model_dir / int8, weights_only=True)
-            int8 = int8_jointnet(jointnet, state)
-        else:
-            int8 = None
+                state = torch.load(model_dir / int8_file, weights_only=True)
+            quantized = int8_jointnet(jointnet, state)
     except (KeyError, TypeError, OSError, RuntimeError) as exc:
         raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
-    return Model2D(layers, mixtures, params, facing, jointnet, int8)
+    return Model2D(layers, mixtures, params, facing, jointnet, quantized)
 
 
 def save_model(

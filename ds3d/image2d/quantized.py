@@ -24,6 +24,11 @@ from torch.fx import GraphModule
 from ds3d.image2d.jointnet import CPU_BFLOAT16, JointNet
 
 ENGINE = "x86"  # torch's quantized backend for x86 CPUs (fbgemm and oneDNN kernels)
+# Left in float: the head, whose logits are the search's unaries as they are (no softmax to
+# forgive their rounding). In int8 it cost the search 4 of 277 people on LSP train's held-out
+# harder canvases against the float network; a float head finds them, at the same speed
+# (docs/tuning.md, speed).
+FLOAT_MODULES = ("head",)
 
 
 def int8_available() -> bool:
@@ -62,6 +67,8 @@ def _prepared(net: JointNet, example: Tensor) -> GraphModule:
     with warnings.catch_warnings():  # torch.ao's notices of its own future
         warnings.simplefilter("ignore")
         mapping = get_default_qconfig_mapping(ENGINE)
+        for name in FLOAT_MODULES:
+            mapping = mapping.set_module_name(name, None)
         return prepare_fx(copy.deepcopy(net).float().eval(), mapping, (example,))
 
 

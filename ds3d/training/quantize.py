@@ -12,10 +12,10 @@ import torch
 from ds3d.boxes import person_boxes
 from ds3d.data.lsp import PoseAnnotations, load_lsp
 from ds3d.image2d.crops import resize_image, working_crops
-from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import MARGIN, NET_BUCKET_STEPS, network_inputs
-from ds3d.image2d.model_files import save_int8_jointnet
+from ds3d.image2d.model_files import load_model, save_int8_jointnet
+from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.quantized import ENGINE, quantize_jointnet
 from ds3d.io.images import read_image
 from ds3d.people.search import SEARCH_BUCKET_STEPS, SearchParams, level_inputs
@@ -28,20 +28,20 @@ def quantize_model(model_dir: Path, images: int) -> dict:
     Returns the manifest."""
     if not 0 < images <= 700:
         raise ValueError(f"calibrate on 1 to 700 of LSP train's images, got {images}")
-    estimator = PoseEstimator2D.load(model_dir)
-    if estimator.jointnet is None:
+    model = load_model(Path(model_dir), int8=False)  # its float network, quantized anew
+    if model.jointnet is None:
         raise ValueError(f"the model in {model_dir} has no joint network to quantize")
     ann = load_lsp(split="train").subset(range(images))
     pictures = [read_image(p) for p in ann.image_paths]
     cpu = torch.device("cpu")
-    _, levels, beyond = level_inputs(pictures, estimator.params, SearchParams(), cpu)
+    _, levels, beyond = level_inputs(pictures, model.params, SearchParams(), cpu)
     crops = [
-        lab_channels(torch.from_numpy(image)[None]) for image in _crops(pictures, ann, estimator)
+        lab_channels(torch.from_numpy(image)[None]) for image in _crops(pictures, ann, model.params)
     ]
     inputs = network_inputs(levels, beyond, SEARCH_BUCKET_STEPS)
     inputs += network_inputs(crops, MARGIN, NET_BUCKET_STEPS)
     quantized = quantize_jointnet(
-        estimator.jointnet, [x.contiguous(memory_format=torch.channels_last) for x in inputs]
+        model.jointnet, [x.contiguous(memory_format=torch.channels_last) for x in inputs]
     )
     calibration = {
         "engine": ENGINE,
@@ -52,12 +52,11 @@ def quantize_model(model_dir: Path, images: int) -> dict:
 
 
 def _crops(
-    pictures: list[np.ndarray], ann: PoseAnnotations, estimator: PoseEstimator2D
+    pictures: list[np.ndarray], ann: PoseAnnotations, params: EstimatorParams
 ) -> list[np.ndarray]:
     """Each image's crop around its annotated person, at the working scale (crops.working_crops
     of the person's box): (h, w, 3) uint8 RGB each."""
     boxes = person_boxes(ann.joints, ann.located)
     return [
-        resize_image(crop.image, crop.base)
-        for crop in working_crops(pictures, list(boxes), estimator.params)
+        resize_image(crop.image, crop.base) for crop in working_crops(pictures, list(boxes), params)
     ]
