@@ -46,6 +46,8 @@ def test_the_int8_network_answers_close_to_the_float_one_and_reads_back_the_same
     # the float ones closely, far from noise
     correlation = torch.corrcoef(torch.stack([exact.flatten(), rounded.flatten()]))[0, 1]
     assert correlation > 0.95
+    # the head stays in float: its logits are the search's unaries, not rounded to int8 steps
+    assert type(quantized.head) is torch.nn.Conv2d
     again = int8_jointnet(net, quantized.state_dict())
     with torch.no_grad():
         torch.testing.assert_close(again(image), rounded)
