@@ -73,3 +73,17 @@ def test_a_model_runs_its_int8_network_until_the_network_is_replaced(small_model
     replace_jointnet(model, state, shape, manifest["train_config"], 1.0)
     assert PoseEstimator2D.load(model).network is not None
     assert PoseEstimator2D.load(model).jointnet_int8 is None  # made of the network replaced
+
+
+def test_a_model_is_quantized_anew_from_its_float_network(small_model, tmp_path):
+    """`ds3d quantize-jointnet` on a model that has an int8 network already quantizes its float
+    one again (the int8 state of another graph is never read back into this one's)."""
+    from ds3d.training.quantize import quantize_model
+
+    model = tmp_path / "image2d"
+    shutil.copytree(small_model, model)
+    for _ in range(2):
+        manifest = quantize_model(model, images=2)
+        assert manifest["jointnet_int8"] == INT8_FILE
+    loaded = PoseEstimator2D.load(model)
+    assert loaded.jointnet_int8 is not None and loaded.network is loaded.jointnet_int8
