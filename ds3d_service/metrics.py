@@ -16,7 +16,7 @@ from prometheus_client import (
     generate_latest,
 )
 
-from ds3d.util.memory import loaded_allocator
+from ds3d.util.memory import loaded_allocator, tree_resident_mb
 from ds3d_service.microbatch import BatchStats
 
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
@@ -28,6 +28,12 @@ class Metrics:
         self.registry = CollectorRegistry()
         # the process's memory, open files and CPU time (process_*; Linux), which a soak watches
         ProcessCollector(registry=self.registry)
+        # ... and with its worker processes (DS3D_WORKERS), whose memory a soak watches too
+        Gauge(
+            "ds3d_resident_memory_bytes",
+            "Resident memory of the server process and its worker processes (Linux)",
+            registry=self.registry,
+        ).set_function(lambda: tree_resident_mb() * 2**20)
         Info("ds3d_allocator", "The process's memory allocator", registry=self.registry).info(
             {"name": loaded_allocator()}
         )

@@ -207,6 +207,18 @@ async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, fl
     )
 
 
+async def server_resident_mb(client: httpx.AsyncClient) -> float | None:
+    """The resident memory in MB of the server and its worker processes, from its /metrics
+    (ds3d_resident_memory_bytes; None from a server without it)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    for family in text_string_to_metric_families((await client.get("/metrics")).text):
+        for sample in family.samples:
+            if sample.name == "ds3d_resident_memory_bytes":
+                return round(sample.value / 2**20, 1)
+    return None
+
+
 async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_requests: int):
     stop_at = runner.t0 + duration_s
     budget = iter(range(max_requests))
@@ -252,6 +264,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
         result = summarize(runner.samples, args.duration, elapsed, args.deadline)
         after = {path: (await client.get(path)).status_code for path in ("/healthz", "/readyz")}
         batches_after = await batch_totals(client, args.endpoint)
+        resident_mb = await server_resident_mb(client)
     items, batches, dropped = (a - b for a, b in zip(batches_after, batches_before, strict=True))
     result.update(
         endpoint=args.endpoint,
@@ -263,6 +276,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
         server_batches=batches,
         server_mean_batch_size=items / batches if batches else None,
         server_deadline_dropped=dropped,
+        server_resident_mb=resident_mb,
     )
     return result, runner.samples
 

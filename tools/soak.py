@@ -5,8 +5,9 @@ and open files over it, read from its /metrics.
 
 --clients closed-loop clients each send, in turn by --mix weights, /v1/pose with one of the
 images, /v1/lift with --items poses, and a bad request (text as an image, a pose of three
-joints, a box outside its image). Every --sample-every seconds the server's resident memory
-(process_resident_memory_bytes) and open file descriptors (process_open_fds). Writes
+joints, a box outside its image). Every --sample-every seconds the resident memory of the server
+and its worker processes (ds3d_resident_memory_bytes) and the server's open file descriptors
+(process_open_fds). Writes
 OUT/NAME.json (the samples, counts by kind and status, latency, and the memory's drift after the
 warm-up and its trend over the last third) and OUT/NAME.png (memory, descriptors and latency over
 time). Like tools.loadtest, a client of local targets only.
@@ -43,7 +44,9 @@ class Usage:
 
 
 async def server_usage(client: httpx.AsyncClient) -> tuple[float, int]:
-    """The server's (resident memory in MB, open file descriptors) from its /metrics."""
+    """The server's (resident memory in MB of it and its worker processes, open file
+    descriptors) from its /metrics (process_resident_memory_bytes, the server's alone, from a
+    server without ds3d_resident_memory_bytes)."""
     from prometheus_client.parser import text_string_to_metric_families
 
     values = {}
@@ -51,7 +54,8 @@ async def server_usage(client: httpx.AsyncClient) -> tuple[float, int]:
         for sample in family.samples:
             values[sample.name] = sample.value
     try:
-        return values["process_resident_memory_bytes"] / 2**20, int(values["process_open_fds"])
+        memory = values.get("ds3d_resident_memory_bytes", values["process_resident_memory_bytes"])
+        return memory / 2**20, int(values["process_open_fds"])
     except KeyError:
         raise SystemExit("the server's /metrics has no process_* metrics (not Linux?)") from None
 

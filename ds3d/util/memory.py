@@ -11,13 +11,40 @@ import os
 from pathlib import Path
 
 
-def resident_mb() -> float:
-    """This process's resident memory in MB (Linux; 0.0 elsewhere)."""
+def resident_mb(pid: int | str = "self", proc: Path = Path("/proc")) -> float:
+    """A process's resident memory in MB (this one's by default; Linux; 0.0 elsewhere or where
+    it has gone)."""
     try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-    except OSError:
+        pages = int((proc / str(pid) / "statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
         return 0.0
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def descendants(pid: int, proc: Path = Path("/proc")) -> list[int]:
+    """The processes started by process `pid`, theirs, and so on (Linux: from each process's
+    parent in /proc/PID/stat; [] elsewhere)."""
+    children: dict[int, list[int]] = {}
+    for stat in proc.glob("[0-9]*/stat"):
+        try:  # "pid (name) state ppid ...": the name may hold spaces and parentheses
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue  # gone meanwhile
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        found += kids
+        todo += kids
+    return found
+
+
+def tree_resident_mb(pid: int | None = None, proc: Path = Path("/proc")) -> float:
+    """The resident memory in MB of a process (this one by default) and of all its descendants
+    (a server and its worker processes). Pages the processes share (a fork's untouched model
+    weights) are counted once per process: an upper bound of what they take together."""
+    pid = os.getpid() if pid is None else pid
+    return sum(resident_mb(p, proc) for p in [pid, *descendants(pid, proc)])
 
 
 def loaded_allocator() -> str:

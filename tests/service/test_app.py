@@ -498,13 +498,19 @@ def test_people_all_and_nobody(engine, serving, data_dir):
 def test_pose_on_worker_processes_answers_as_one_process(engine, serving, data_dir):
     """DS3D_WORKERS=2: /v1/pose's batches split between two processes of the bundled models
     answer as the pipeline of this process does (2D alike, 3D up to the fit's rounding, which
-    depends on how many people are lifted together)."""
+    depends on how many people are lifted together); /metrics' resident memory counts the
+    workers' (each holds the models: over 100 MB) beside the server's."""
     paths = load_lsp(split="test").image_paths[:4]
     pooled = Engine.load(MODEL_DIR, "cpu", workers=2, threads=1)
     try:
         with serving(pooled, max_batch_size=4, max_wait_ms=200) as u, PoseClient(u) as client:
             with ThreadPoolExecutor(4) as calls:
                 answers = list(calls.map(client.estimate, paths))
+            own = metric(u, "process_resident_memory_bytes", {})
+            together = metric(u, "ds3d_resident_memory_bytes", {})
+            assert together["ds3d_resident_memory_bytes"] > (
+                own["process_resident_memory_bytes"] + 2 * 100 * 2**20
+            )
     finally:
         pooled.close()
     ref = engine.pipeline.estimate([read_image(p) for p in paths])

@@ -6,11 +6,12 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
 from ds3d.cli import main as cli
-from ds3d.util.memory import loaded_allocator, resident_mb
+from ds3d.util.memory import descendants, loaded_allocator, resident_mb, tree_resident_mb
 from ds3d_service.allocator import find_jemalloc
 from tests.needs import missing
 
@@ -67,3 +68,26 @@ def test_large_buffers_get_their_own_mappings_under_glibc():
         assert out[0] == str(bound == "1")
         kept[bound] = float(out[1])
     assert kept["1"] < 8 <= kept["0"]
+
+
+def test_a_process_tree_is_found_and_its_memory_summed():
+    """A child and its own child are this process's descendants, and the tree's resident
+    memory is at least this process's and the children's, each of them a Python."""
+    sleeper = "import time; time.sleep(30)"
+    grandchild = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {sleeper!r}])"
+    child = subprocess.Popen([sys.executable, "-c", grandchild])
+    try:
+        deadline = time.monotonic() + 20
+        while len(descendants(os.getpid())) < 2:
+            assert time.monotonic() < deadline, "the grandchild never started"
+            time.sleep(0.05)
+        tree = descendants(os.getpid())
+        assert child.pid in tree
+        assert tree_resident_mb() >= resident_mb() + sum(resident_mb(p) for p in tree) - 1
+        assert resident_mb(child.pid) > 1
+    finally:
+        for pid in descendants(child.pid):
+            os.kill(pid, 9)
+        child.kill()
+        child.wait()
+    assert resident_mb(child.pid) == 0.0  # gone
