@@ -45,6 +45,7 @@ def register(commands, evals, benches) -> None:
     add_device_option(b, "where the 2D stage runs")
     b.add_argument("--threads", type=int, default=1)
     b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--out", type=Path, help="JSON report")
     add_set_option(b, INFERENCE_OVERRIDE)
     b.set_defaults(func=bench_2d)
 
@@ -105,8 +106,10 @@ def bench_2d(args) -> int:
 
     torch.set_num_threads(args.threads)
     est = load_estimator(args)
+    rows = []
     for row in estimator_speed(est, args.repeats):
         print(json.dumps(row), flush=True)
+        rows.append(row)
     settings = {
         "threads": args.threads,
         "scales": est.scales(),
@@ -117,6 +120,8 @@ def bench_2d(args) -> int:
         "step_ms": "summed over the threads (CPU time); total is wall-clock",
     }
     print(json.dumps(settings), file=sys.stderr)
+    if args.out is not None:
+        write_report({**settings, "rows": rows}, args.out)
     return 0
 
 
