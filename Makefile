@@ -16,7 +16,7 @@ TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 PIP_TOOLS := pip-tools==7.6.2
 LOCKS := requirements/dev.txt requirements/service.txt requirements/ray.txt
 
-.PHONY: install lock test test-fast lint audit eval floors bench build-db serve clean
+.PHONY: install lock test test-fast lint audit eval floors check-results bench build-db serve clean
 
 $(STAMP): pyproject.toml requirements/dev.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -74,6 +74,11 @@ eval: $(STAMP)
 floors: eval
 	$(BIN)/ds3d --quiet eval lsp --write-manifest
 	$(BIN)/ds3d --quiet eval people --count 24 --out docs/results/people-24.json
+
+# The at-a-glance figures of docs/RESULTS.md and docs/service-results.md against the JSON reports
+# their rows name: each the report's value, the report with its provenance (tools/check_results.py).
+check-results: $(STAMP)
+	$(BIN)/python -m tools.check_results
 
 bench: $(STAMP)
 	$(BIN)/ds3d bench lift
