@@ -188,35 +188,25 @@ class Runner:
         return float(resp.headers.get("retry-after", 1))
 
 
-async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, float, float]:
-    """The server's (items batched, batches, items dropped for their deadline) so far, from
-    its /metrics (a replica's own, when behind a load balancer)."""
+async def server_metrics(client: httpx.AsyncClient, queue: str | None = None) -> dict[str, float]:
+    """The server's /metrics samples (a replica's own, when behind a load balancer), by name;
+    with `queue`, of those labelled by a queue only that queue's."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    totals = {"ds3d_batch_size_sum": 0.0, "ds3d_batch_size_count": 0.0}
-    totals["ds3d_deadline_dropped_items_total"] = 0.0
-    text = (await client.get("/metrics")).text
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name in totals and sample.labels.get("queue") == queue:
-                totals[sample.name] = sample.value
-    return (
-        totals["ds3d_batch_size_sum"],
-        totals["ds3d_batch_size_count"],
-        totals["ds3d_deadline_dropped_items_total"],
-    )
-
-
-async def server_resident_mb(client: httpx.AsyncClient) -> float | None:
-    """The resident memory in MB of the server and its worker processes, from its /metrics
-    (ds3d_resident_memory_bytes; None from a server without it)."""
-    from prometheus_client.parser import text_string_to_metric_families
-
+    values = {}
     for family in text_string_to_metric_families((await client.get("/metrics")).text):
         for sample in family.samples:
-            if sample.name == "ds3d_resident_memory_bytes":
-                return round(sample.value / 2**20, 1)
-    return None
+            if queue is None or sample.labels.get("queue", queue) == queue:
+                values[sample.name] = sample.value
+    return values
+
+
+async def batch_totals(client: httpx.AsyncClient, queue: str) -> tuple[float, float, float]:
+    """The server's (items batched, batches, items dropped for their deadline) so far."""
+    values = await server_metrics(client, queue)
+    names = ("ds3d_batch_size_sum", "ds3d_batch_size_count", "ds3d_deadline_dropped_items_total")
+    items, batches, dropped = (values.get(name, 0.0) for name in names)
+    return items, batches, dropped
 
 
 async def closed_loop(runner: Runner, concurrency: int, duration_s: float, max_requests: int):
@@ -264,7 +254,8 @@ async def run(args) -> tuple[dict, list[Sample]]:
         result = summarize(runner.samples, args.duration, elapsed, args.deadline)
         after = {path: (await client.get(path)).status_code for path in ("/healthz", "/readyz")}
         batches_after = await batch_totals(client, args.endpoint)
-        resident_mb = await server_resident_mb(client)
+        # the server's and its worker processes' (ds3d_resident_memory_bytes), where it says
+        resident = (await server_metrics(client)).get("ds3d_resident_memory_bytes")
     items, batches, dropped = (a - b for a, b in zip(batches_after, batches_before, strict=True))
     result.update(
         endpoint=args.endpoint,
@@ -276,7 +267,7 @@ async def run(args) -> tuple[dict, list[Sample]]:
         server_batches=batches,
         server_mean_batch_size=items / batches if batches else None,
         server_deadline_dropped=dropped,
-        server_resident_mb=resident_mb,
+        server_resident_mb=None if resident is None else round(resident / 2**20, 1),
     )
     return result, runner.samples
 

@@ -31,7 +31,14 @@ import numpy as np
 
 from ds3d.util.provenance import provenance
 from ds3d_service.client import auth_headers
-from tools.loadtest import LOCAL_HOSTS, Sample, image_payloads, lift_payloads, read_poses
+from tools.loadtest import (
+    LOCAL_HOSTS,
+    Sample,
+    image_payloads,
+    lift_payloads,
+    read_poses,
+    server_metrics,
+)
 
 KINDS = ("pose", "lift", "bad")
 
@@ -47,12 +54,7 @@ async def server_usage(client: httpx.AsyncClient) -> tuple[float, int]:
     """The server's (resident memory in MB of it and its worker processes, open file
     descriptors) from its /metrics (process_resident_memory_bytes, the server's alone, from a
     server without ds3d_resident_memory_bytes)."""
-    from prometheus_client.parser import text_string_to_metric_families
-
-    values = {}
-    for family in text_string_to_metric_families((await client.get("/metrics")).text):
-        for sample in family.samples:
-            values[sample.name] = sample.value
+    values = await server_metrics(client)
     try:
         memory = values.get("ds3d_resident_memory_bytes", values["process_resident_memory_bytes"])
         return memory / 2**20, int(values["process_open_fds"])

@@ -41,8 +41,8 @@ def descendants(pid: int, proc: Path = Path("/proc")) -> list[int]:
 
 def tree_resident_mb(pid: int | None = None, proc: Path = Path("/proc")) -> float:
     """The resident memory in MB of a process (this one by default) and of all its descendants
-    (a server and its worker processes). Pages the processes share (a fork's untouched model
-    weights) are counted once per process: an upper bound of what they take together."""
+    (a server and its worker processes). Pages the processes share (libraries, shared memory)
+    are counted once per process: an upper bound of what they take together."""
     pid = os.getpid() if pid is None else pid
     return sum(resident_mb(p, proc) for p in [pid, *descendants(pid, proc)])
 
