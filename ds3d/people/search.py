@@ -31,7 +31,6 @@ from ds3d.image2d.crops import resize_image
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import (
-    MARGIN,
     STRIDE,
     ScaledLogits,
     logits_to_grid,
@@ -196,12 +195,11 @@ def _propose(
     person at the working scale; unary_weight, the PSM's weight on its unaries)."""
     pool = max(params.psm_stride // STRIDE, 1)
     levels, labs, beyond = level_inputs(images, model, params, mixtures.mean.device)
-    border = level_border(beyond)
-    logits = padded_logits_each(net, labs, margin=border, steps=SEARCH_BUCKET_STEPS)
+    logits = padded_logits_each(net, labs, margin=beyond, steps=SEARCH_BUCKET_STEPS)
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
         grid = logits_to_grid(
-            lg, resized.shape[0] + 2 * beyond, resized.shape[1] + 2 * beyond, STRIDE, margin=MARGIN
+            lg, resized.shape[0] + 2 * beyond, resized.shape[1] + 2 * beyond, STRIDE, margin=0
         )
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's reach are -inf: no root or joint can score there.
@@ -215,7 +213,7 @@ def _propose(
     for (i, resized), lg, (pose, score) in zip(levels, logits, found, strict=True):
         height, width = images[i].shape[:2]
         scale = (resized.shape[1] / width, resized.shape[0] / height)
-        views[i].append(ScaledLogits(lg, scale, border))
+        views[i].append(ScaledLogits(lg, scale, beyond))
         pose = (pose - beyond) / np.array(scale)
         # A person the image shows: at least half of the joints within it.
         shown = ((pose >= 0) & (pose < (width, height))).all(-1).mean(-1) >= 0.5
@@ -229,9 +227,9 @@ def level_inputs(
 ) -> tuple[list[tuple[int, np.ndarray]], list[torch.Tensor], int]:
     """The pyramid levels of N images (H_i, W_i, 3) uint8 RGB: per level, (the image's index,
     the image resized to it, (h, w, 3)), its Lab / 100 channels (1, 3, h, w) on `device`, and
-    the px the levels reach past the images' edges (beyond_edge, whole network cells; the
-    network's input carries level_border(beyond) px of zeros round them). A level smaller than
-    a few PSM cells is left out."""
+    the px of zeros the levels reach past the images' edges (beyond_edge, whole network
+    cells), which the network's input carries round them (padded_logits_each's margin). A
+    level smaller than a few PSM cells is left out."""
     canonical_extent = model.canonical_extent
     pool = max(params.psm_stride // STRIDE, 1)
     levels = []
@@ -240,18 +238,12 @@ def level_inputs(
             resized = resize_image(image, canonical_extent / extent)
             if min(resized.shape[:2]) >= 2 * STRIDE * pool:
                 levels.append((i, resized))
+    # The network's border of zeros (jointnet.MARGIN) is the levels' reach past the edges, no
+    # more; and their inputs' buckets are finer than the crops' (SEARCH_BUCKET_STEPS): the
+    # search's maps are most of a searched image's network time (docs/tuning.md, speed).
     beyond = round(params.beyond_edge * canonical_extent / STRIDE) * STRIDE
     labs = [lab_channels(torch.from_numpy(r).to(device)[None]) for _, r in levels]
     return levels, labs, beyond
-
-
-def level_border(beyond: int) -> int:
-    """px of zeros round a level in the network's input, for a reach of `beyond` px past the
-    image's edges: jointnet.MARGIN more than the reach, as round a crop, so that the maps of the
-    cells within reach see zeros past them as the network was trained (training windows extend
-    past their images): without it, people the frame cuts were found less often and more false
-    ones answered (docs/tuning.md, the search's border of zeros)."""
-    return beyond + MARGIN
 
 
 def _level_people(
