@@ -12,6 +12,7 @@ forked: torch's and OpenMP's thread pools do not survive a fork.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -87,8 +88,11 @@ class PipelineWorkers:
 
 
 def _load(threads: int, load: dict, everyone) -> None:
-    """A worker's start: its torch threads, its Pipeline, the pool's barrier."""
+    """A worker's start: its torch threads, its Pipeline, the pool's barrier. Ctrl+C reaches
+    the whole process group: a worker leaves it to its parent, which stops the pool (close),
+    rather than die with a traceback while the parent shuts down in order."""
     global _pipeline, _everyone
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
     _pipeline, _everyone = Pipeline.load(**load), everyone
 

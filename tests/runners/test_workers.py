@@ -63,3 +63,12 @@ def test_fewer_images_than_workers(workers, images):
 
 def test_no_images_no_people(workers, pipeline):
     assert len(workers.estimate([]).image_index) == 0 == len(pipeline.estimate([]).image_index)
+
+
+def test_ctrl_c_is_left_to_the_parent(workers):
+    """Ctrl+C reaches the whole process group: the workers ignore it, so the parent (the
+    service, a script) stops them in order rather than each dying with a traceback."""
+    import signal
+
+    for _ in range(2):
+        assert workers._pool.submit(signal.getsignal, signal.SIGINT).result() == signal.SIG_IGN
