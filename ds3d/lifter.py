@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ds3d.errors import DataFormatError
 from ds3d.fit.bones import bone_lengths
 from ds3d.fit.camera import (
     CameraFrame,
@@ -39,6 +40,7 @@ from ds3d.fit.selection import set_energy, top_weighted
 from ds3d.fit.solve import EnergyWeights, fit_pose, fit_projection
 from ds3d.inputs import PoseInput, intrinsics_batch, joints_2d_batch, visibility_batch
 from ds3d.mocap.database import PoseDatabase
+from ds3d.mocap.prior import PRIOR_DIR, LiftingPrior
 from ds3d.mocap.retrieval import IndexConfig, PoseRetriever, database_digest
 from ds3d.skeleton import SET_NAMES, hip_midpoint, joint_set_mask
 from ds3d.util.groups import group_rows
@@ -79,11 +81,15 @@ class LifterConfig:
     # Off the CPU, search the indices' lists on the lifter's device (mocap.retrieval.DeviceLists:
     # the same neighbours, no round trip); False: faiss on the CPU there too.
     retrieval_on_device: bool = True
+    # The database's learnt lifting prior (ds3d.mocap.prior), where it has one, in the 3D fit:
+    # its pose is the fit's start and one more direction to move along, and E_l (weight
+    # omega.learnt) holds the person near it. False: the neighbours alone, as the paper.
+    prior: bool = True
 
 
 # The paper's algorithm without ds3d's departures for speed, accuracy and proportions, the
 # ablations' reference: every set scored for every pose, the projection fitted to all K
-# neighbours, K_w = 64, 18 components, the database's proportions.
+# neighbours, K_w = 64, 18 components, the database's proportions, no learnt prior.
 # dataclasses.replace(LifterConfig(), **PAPER_OVERRIDES).
 PAPER_OVERRIDES = {
     "partial_sets": "always",
@@ -91,6 +97,7 @@ PAPER_OVERRIDES = {
     "weighted_neighbours": 64,
     "pca_components": 18,
     "proportions": False,
+    "prior": False,
 }
 
 
@@ -247,8 +254,11 @@ class Lifter:
         config: LifterConfig = LifterConfig(),
         device: str | torch.device = "cpu",
         cache_indices: bool = True,
+        prior: LiftingPrior | None = None,
     ):
+        """prior: the database's learnt lifting prior, used where config.prior says so."""
         self.device = torch.device(device)
+        self.prior = None if prior is None else LiftingPrior(prior.nets, prior.manifest, device)
         self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
         # the candidates are gathered and rotated on the device, and searched there (place)
         self.database = dataclasses.replace(
@@ -259,7 +269,15 @@ class Lifter:
         self.configure(config)
         if self.device.type != "cpu" and config.retrieval_on_device:
             self.retriever.place(self.device)
-        self.model_id = f"{database.manifest.get('source', 'posedb')}-{database_digest(database)}"
+        source = database.manifest.get("source", "posedb")
+        self.database_id = f"{source}-{database_digest(database)}"
+
+    @property
+    def model_id(self) -> str:
+        """What answers name as their model: the database and, where it is used, the prior."""
+        if self.prior is None or not self.config.prior:
+            return self.database_id
+        return f"{self.database_id}+prior-{self.prior.digest}"
 
     def configure(self, config: LifterConfig) -> None:
         """Change the algorithm parameters (not the index) of a loaded lifter."""
@@ -279,9 +297,17 @@ class Lifter:
         database: str = "posedb",
     ) -> Lifter:
         """The pose database `model_dir`/`database` (default: models/posedb, from Human3.6M;
-        models/posedb-cmu holds the CMU one)."""
-        directory = Path(model_dir) if model_dir is not None else MODELS_DIR
-        return cls(PoseDatabase.load(require_models(directory / database)), config, device)
+        models/posedb-cmu holds the CMU one), and its learnt prior where its folder holds one
+        (`prior/`, ds3d.mocap.prior)."""
+        directory = require_models((Path(model_dir) if model_dir else MODELS_DIR) / database)
+        db, learnt = PoseDatabase.load(directory), directory / PRIOR_DIR
+        prior = LiftingPrior.load(learnt) if learnt.is_dir() else None
+        if prior is not None and prior.manifest["database"]["digest"] != database_digest(db):
+            raise DataFormatError(
+                f"{learnt} was trained on another database than {directory}'s: train it again "
+                "(ds3d train-prior) or remove it"
+            )
+        return cls(db, config, device, prior=prior)
 
     @torch.inference_mode()  # no autograd anywhere: a third less overhead per op at batch 1
     def lift(self, joints_2d, visible=None, intrinsics=None, camera=None) -> LiftResult:
@@ -477,9 +503,21 @@ class Lifter:
         problem_of[problems.pose, problems.joint_set] = torch.arange(len(cost), device=dev)
         return problem_of[torch.arange(b, device=dev), best], table
 
+    def learnt_poses(self, problems: Problems, params: torch.Tensor) -> torch.Tensor | None:
+        """The learnt prior's pose of each problem's person from all its visible joints, in the
+        orientation of its neighbours (turned by the inverse of its projection's rotation,
+        params (P, 6)): (P, 14, 3) mm; None without a prior or with config.prior off."""
+        if self.prior is None or not self.config.prior:
+            return None
+        own = problems.own
+        in_camera = self.prior(own.joints_2d, own.visible, own.frame.intrinsics)
+        # camera = R neighbours' frame, row by row: x_neighbours = x_camera R
+        return in_camera @ rotation_matrix(params[:, :3])
+
     def fit_pose(self, kept, weights, params, problems: Problems):
         """eq:energyMin2 of one problem per pose (its chosen set): kept (B, K_w, 14, 3), weights
-        (B, K_w), params (B, 6). Returns the pose (B, 14, 3) mm, camera-oriented, root at the
+        (B, K_w), params (B, 6); with the learnt prior's pose (learnt_poses) where there is one.
+        Returns the pose (B, 14, 3) mm, camera-oriented, root at the
         hip midpoint, with the person's proportions, its projection (B, 6), and where its hip
         midpoint lies from the origin that the projection places (B, 3) mm (root_position)."""
         pose, projection = fit_pose(
@@ -493,6 +531,7 @@ class Lifter:
             self.config.pca_components,
             self.config.pose_iterations,
             self.config.proportions,
+            self.learnt_poses(problems, params),
         )
         oriented = pose @ rotation_matrix(projection[:, :3]).transpose(-1, -2)
         root = hip_midpoint(oriented)

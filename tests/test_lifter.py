@@ -233,7 +233,7 @@ def test_the_lifter_runs_on_cuda_as_on_the_cpu(lifter, cases):
     """device="cuda": the database and every fit on the GPU, faiss on the CPU; the same poses."""
     from ds3d.lifter import Lifter
 
-    on_gpu = Lifter(lifter.database, lifter.config, device="cuda")
+    on_gpu = Lifter(lifter.database, lifter.config, device="cuda", prior=lifter.prior)
     part = cases.subset(np.arange(16))
     visible = np.ones((16, 14), dtype=bool)
     visible[3, L_WRIST] = False
@@ -242,3 +242,64 @@ def test_the_lifter_runs_on_cuda_as_on_the_cpu(lifter, cases):
     assert gpu.joints_3d.device.type == "cpu"  # results come back to the host
     torch.testing.assert_close(gpu.joints_3d, cpu.joints_3d, atol=2.0, rtol=0)  # mm
     assert gpu.joint_set == cpu.joint_set
+
+
+def test_the_bundled_database_has_its_learnt_prior_and_the_papers_method_leaves_it_out(
+    lifter, cases
+):
+    """The prior is used by default, and named in the model's id; PAPER_OVERRIDES lift as a
+    lifter without any prior."""
+    from ds3d.lifter import PAPER_OVERRIDES, Lifter
+
+    assert lifter.prior is not None and lifter.config.prior
+    part = cases.subset(np.arange(0, len(cases), 20))
+    paper = dataclasses.replace(LifterConfig(), **PAPER_OVERRIDES)
+    without = Lifter(lifter.database, paper)
+    assert lifter.model_id == f"{without.model_id}+prior-{lifter.prior.digest}"
+    lifter.configure(paper)
+    try:
+        assert lifter.model_id == without.model_id
+        papers = lifter.lift(part.joints_2d, intrinsics=part.intrinsics)
+    finally:
+        lifter.configure(LifterConfig())
+    alone = without.lift(part.joints_2d, intrinsics=part.intrinsics)
+    torch.testing.assert_close(papers.joints_3d, alone.joints_3d, atol=0, rtol=0)
+    learnt = lifter.lift(part.joints_2d, intrinsics=part.intrinsics)
+    assert float((learnt.joints_3d - alone.joints_3d).norm(dim=-1).mean()) > 1.0  # mm
+
+
+def test_a_learnt_pose_draws_the_fit_towards_it(lifter, cases):
+    """The 3D fit given the true pose as its learnt pose ends nearer the truth than without
+    one, and given the true pose with a strong E_l, next to it (the rest of the energy, fitted
+    to the neighbours, pulls it only a little way)."""
+    from ds3d.evaluation.metrics import rigid_error
+    from ds3d.fit.camera import rotation_matrix
+    from ds3d.fit.solve import fit_pose
+
+    part = cases.subset(np.arange(0, len(cases), 10))
+    query = lifter.query(part.joints_2d, None, part.intrinsics)
+    problems = lifter.problems(query)
+    found = lifter.neighbours(problems)
+    kept, weights, _ = lifter.weight_neighbours(found.poses, -found.residuals)
+    truth = torch.from_numpy(part.joints_3d) @ rotation_matrix(found.params[:, :3])
+    cfg = lifter.config
+
+    def error(learnt, omega=cfg.omega) -> float:
+        pose, _ = fit_pose(
+            kept,
+            weights,
+            found.params,
+            problems.own.joints_2d,
+            problems.masks,
+            problems.own.frame,
+            omega,
+            cfg.pca_components,
+            cfg.pose_iterations,
+            cfg.proportions,
+            learnt,
+        )
+        return float(rigid_error(pose, truth).mean())
+
+    strong = dataclasses.replace(cfg.omega, learnt=100.0)
+    assert error(truth) < error(None) - 5.0
+    assert error(truth, strong) < 10.0

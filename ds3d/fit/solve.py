@@ -115,6 +115,9 @@ class EnergyWeights:
     retrieval: float = 0.35
     anthropometric: float = 0.065
     proportions: float = 0.5
+    # omega_l: E_l, the squared distance of the person from the learnt prior's pose (in
+    # LEARNT_UNIT), where one is given (ds3d.mocap.prior)
+    learnt: float = 0.35
 
 
 def fit_pose(
@@ -128,18 +131,22 @@ def fit_pose(
     components: int = 18,
     iterations: int = 4,
     proportions: bool = True,
+    learnt: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """eq:energyMin2 for B problems, with the person's bone-group scales when `proportions`.
 
     neighbours: (B, K, 14, 3) mm camera-oriented; weights: (B, K) in [0, 1]; params: (B, 6) the
     chosen projection; joints_2d: (B, 14, 2) px; mask: (B, 14) float, the joints E_p uses.
     E_r and E_a hold the pose in the database's proportions near the neighbours; E_p sees it
-    with the person's. Returns that pose (B, 14, 3) mm in the neighbours' orientation and the
+    with the person's. learnt: optional (B, 14, 3) mm, a learnt prior's pose of the person in
+    the neighbours' orientation: the fit starts there, may move along it (one more direction
+    beside the neighbours' components) and E_l (omega.learnt) holds the person near it.
+    Returns that pose (B, 14, 3) mm in the neighbours' orientation and the
     projection (B, 6): the given one, its position and depth refitted with the proportions
     (a person's size and distance are one unknown in an image; the prior on the scales, which
     prefers the database's proportions, settles it).
     """
-    problem = PoseProblem(neighbours, weights, components, proportions)
+    problem = PoseProblem(neighbours, weights, components, proportions, learnt)
     strength = params.new_ones(len(params))  # the prior's, per problem
     evaluate = problem.residuals(params, joints_2d, mask, frame, omega, strength)
     if not proportions:
@@ -166,20 +173,27 @@ NOISE_REFERENCE = 0.04
 # The spread of the prior that holds the projection's (a, b, w) where the 2D is noisy: 5 % of the
 # pose's spread and of its depth (S9: noisy 72.4 -> 71.3 mm, clean and rescaled unchanged).
 SHIFT_SD = 0.05
+# E_l's unit, mm: omega_l sum_j |X_j - L_j|^2 / LEARNT_UNIT^2 over the person's joints X and the
+# learnt pose's L (the order of the prior's own joint errors)
+LEARNT_UNIT = 100.0
 
 
 class PoseProblem:
     """eq:energyMin2's unknowns z (B, C + G + T): C PCA coefficients of the weighted
-    neighbours, in standard deviations (every direction the same scale for the solver); with
-    `proportions`, G log scales of the bone groups and T = 3 changes of the projection's
-    (a, b, w) (none of either without)."""
+    neighbours, in standard deviations (every direction the same scale for the solver), and
+    with a learnt pose (B, 14, 3) one more, along the learnt pose's difference from their mean
+    (1: the learnt pose, where the fit starts); with `proportions`, G log scales of the bone
+    groups and T = 3 changes of the projection's (a, b, w) (none of either without)."""
 
-    def __init__(self, neighbours, weights, components: int, proportions: bool):
+    def __init__(self, neighbours, weights, components: int, proportions: bool, learnt=None):
         self.neighbours = neighbours
+        self.learnt = learnt
         self.share = weights / weights.sum(-1, keepdim=True).clamp_min(1e-12)  # weighted means
         mean, basis, sigma = weighted_pca(neighbours, weights, components)
         self.mean = mean.unflatten(-1, (NUM_JOINTS, 3))  # (B, 14, 3)
         self.basis = (basis * sigma.clamp_min(1e-3)[..., None]).unflatten(-1, (NUM_JOINTS, 3))
+        if learnt is not None:
+            self.basis = torch.cat([self.basis, (learnt - self.mean)[:, None]], 1)
         self.components = c = self.basis.shape[1]
         self.groups = g = len(BONE_GROUPS) if proportions else 0
         self.shifts = 3 if proportions else 0
@@ -187,8 +201,12 @@ class PoseProblem:
         self.shift_columns = slice(c + g, c + g + self.shifts)
 
     def start(self) -> torch.Tensor:
+        """(B, C + G + T): the neighbours' mean, or the learnt pose where one is given."""
         unknowns = self.components + self.groups + self.shifts
-        return self.mean.new_zeros(len(self.mean), unknowns)
+        z = self.mean.new_zeros(len(self.mean), unknowns)
+        if self.learnt is not None:
+            z[:, self.components - 1] = 1
+        return z
 
     def pose(self, z: torch.Tensor) -> torch.Tensor:
         """(B, 14, 3) mm: the pose in the database's proportions."""
@@ -216,9 +234,10 @@ class PoseProblem:
         prior_strength: torch.Tensor,
     ):
         """The energy's residuals as ds3d.fit.gauss_newton takes them: E_p of the person under
-        the projection params (B, 6), E_r and E_a of the pose, the prior on the scales
-        (omega.proportions times prior_strength (B,), read at each evaluation) and, with the
-        strength beyond one, on the projection's change (in SHIFT_SD)."""
+        the projection params (B, 6), E_r and E_a of the pose, E_l of the person where a learnt
+        pose is given, the prior on the scales (omega.proportions times prior_strength (B,),
+        read at each evaluation) and, with the strength beyond one, on the projection's change
+        (in SHIFT_SD)."""
         b, c, g = len(self.mean), self.components, self.groups
         n = c + g + self.shifts
         rotation = rotation_matrix(params[:, :3])
@@ -263,6 +282,11 @@ class PoseProblem:
                 held = omega.proportions * (prior_strength[:, None] - 1)
                 shift_prior = (z[:, self.shift_columns] / SHIFT_SD)[:, None]
                 groups.append(Residuals(held, shift_prior, robust=False))
+            if self.learnt is not None:
+                # quadratic: a robust term would pin the fit to the learnt pose where it starts
+                # (its fourth root of the squared distance has an infinite slope at zero)
+                near_learnt = ((person - self.learnt) / LEARNT_UNIT).flatten(1)[:, None]
+                groups.append(Residuals(omega.learnt * ones, near_learnt, robust=False))
             if not with_jacobian:
                 return groups
             d_person = self.basis.permute(0, 2, 3, 1)  # (B, 14, 3, C)
@@ -281,6 +305,9 @@ class PoseProblem:
             if g:
                 groups[3].jacobian = prior_jacobian
                 groups[4].jacobian = shift_jacobian
+            if self.learnt is not None:
+                d_learnt = F.pad(d_person.flatten(1, 2), (0, self.shifts)) / LEARNT_UNIT
+                groups[-1].jacobian = d_learnt[:, None]
             return groups
 
         return evaluate

@@ -43,10 +43,14 @@ def test_gauss_newton_solves_each_robust_problem_independently():
     torch.testing.assert_close(x, points[:, 1:].mean(1), atol=0.05, rtol=0)
 
 
-@pytest.mark.parametrize("perspective", [True, False])
-@pytest.mark.parametrize("proportions", [True, False])
-def test_analytic_jacobians_equal_autograd(perspective, proportions):
-    """The fits' hand-written Jacobians against autograd's, in float64, at a random point."""
+@pytest.mark.parametrize(
+    ("perspective", "proportions", "learnt"),
+    [(p, s, False) for p in (True, False) for s in (True, False)]
+    + [(True, True, True), (False, False, True)],
+)
+def test_analytic_jacobians_equal_autograd(perspective, proportions, learnt):
+    """The fits' hand-written Jacobians against autograd's, in float64, at a random point (with
+    a learnt pose: its direction and E_l too)."""
     g = torch.Generator().manual_seed(1)
     d = torch.float64
     candidates = torch.randn(3, 5, 14, 3, generator=g, dtype=d) * 300
@@ -75,7 +79,9 @@ def test_analytic_jacobians_equal_autograd(perspective, proportions):
         state,
         lambda step: turn(state, step),
     )
-    problem = PoseProblem(candidates, torch.rand(3, 5, generator=g, dtype=d), 4, proportions)
+    learnt_pose = torch.randn(3, 14, 3, generator=g, dtype=d) * 300 if learnt else None
+    weights = torch.rand(3, 5, generator=g, dtype=d)
+    problem = PoseProblem(candidates, weights, 4, proportions, learnt_pose)
     z = torch.randn(3, problem.start().shape[1], generator=g, dtype=d) * 0.3
     compare(
         problem.residuals(params, joints_2d, mask, frame, EnergyWeights(), torch.ones(3, dtype=d)),
