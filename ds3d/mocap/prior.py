@@ -199,15 +199,21 @@ class LiftingPrior:
 
 
 SCALE_SUFFIX = ".int8_scale"
+# The hidden layers' weight matrices (of at least PACKED_SIDE rows and columns) are stored as int8;
+# the first and the last layer's, which carry the input and the answer (the pose in mm), as
+# float16: on S9 int8 everywhere cost 0.3 mm and 5 mm of root position, int8 in the hidden
+# layers alone nothing (docs/tuning.md).
+PACKED_SIDE = 256
 
 
 def packed(state: dict[str, Tensor]) -> dict[str, Tensor]:
-    """A network's state as stored, at about a quarter of float32's bytes: each weight matrix
-    as int8 with one float32 scale per row (`name` + SCALE_SUFFIX; an element is off by at most
-    half its row's scale, 1/254 of the row's largest magnitude), other floats as float16."""
+    """A network's state as stored, at about a quarter of float32's bytes: each hidden weight
+    matrix (PACKED_SIDE) as int8 with one float32 scale per row (`name` + SCALE_SUFFIX; an
+    element is off by at most half its row's scale, 1/254 of the row's largest magnitude), other
+    floats as float16."""
     out = {}
     for name, value in state.items():
-        if value.is_floating_point() and value.dim() == 2:
+        if value.is_floating_point() and value.dim() == 2 and min(value.shape) >= PACKED_SIDE:
             scale = value.abs().amax(1, keepdim=True).clamp_min(1e-12) / 127
             out[name] = (value / scale).round().to(torch.int8)
             out[name + SCALE_SUFFIX] = scale
