@@ -258,7 +258,7 @@ class Lifter:
     ):
         """prior: the database's learnt lifting prior, used where config.prior says so."""
         self.device = torch.device(device)
-        self.prior = None if prior is None else LiftingPrior(prior.nets, prior.manifest, device)
+        self.prior = None if prior is None else prior.to(self.device)
         self.retriever = PoseRetriever(database, config.index, cache=cache_indices)
         # the candidates are gathered and rotated on the device, and searched there (place)
         self.database = dataclasses.replace(

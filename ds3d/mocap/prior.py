@@ -26,6 +26,7 @@ settings, metrics).
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -158,6 +159,10 @@ class LiftingPrior:
         # names this prior in answers (Lifter.model_id): its manifest records the training's
         # settings, seconds and losses
         self.digest = hashlib.sha1(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:8]
+
+    def to(self, device: str | torch.device) -> LiftingPrior:
+        """A copy on `device` (this one's networks stay where they are)."""
+        return LiftingPrior(copy.deepcopy(self.nets), self.manifest, device)
 
     @torch.inference_mode()
     def __call__(self, joints_2d: Tensor, visible: Tensor, intrinsics: Tensor | None) -> Tensor:

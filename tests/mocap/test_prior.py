@@ -166,3 +166,14 @@ def test_the_estimated_noise_level_blends_the_clean_and_the_noisy_networks_pose(
     blended = answer(0.0)
     close(blended[2], alone("noisy")[2])
     close(blended[[0, 1, 3, 4]], alone("clean")[[0, 1, 3, 4]])
+
+
+def test_a_prior_moved_to_a_device_is_a_copy():
+    """Lifter(device=...) moves its prior there; the prior it was given stays where it was."""
+    prior = LiftingPrior(small_nets(), {})
+    moved = prior.to("cpu")
+    for name in NETWORKS:
+        assert moved.nets[name] is not prior.nets[name]
+    torch.nn.init.zeros_(moved.nets["clean"].head.weight)  # changing the copy
+    query = a_query()
+    assert not torch.equal(moved(*query), prior(*query))
