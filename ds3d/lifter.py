@@ -5,6 +5,8 @@
     weighting      keep the K_w best neighbours, eq:wtn                     (ds3d.fit.selection)
     set choice     s^ by eq:energyS, E_p on all visible joints              (ds3d.fit.selection)
     3D fit         X^ by eq:energyMin2 over PCA(18) of the neighbours       (ds3d.fit.solve)
+    learnt prior   a pose lifted by networks learnt from the database: the   (ds3d.mocap.prior)
+                   3D fit's start, one more direction and E_l (not in the paper)
 
 With no image there are no unaries, so a neighbour's weight (eq:wt) is replaced by the negative
 of its own 2D fit residual E_p under M_s: the neighbours that project best onto the 2D pose count

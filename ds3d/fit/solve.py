@@ -116,8 +116,9 @@ class EnergyWeights:
     anthropometric: float = 0.065
     proportions: float = 0.5
     # omega_l: E_l, the squared distance of the person from the learnt prior's pose (in
-    # LEARNT_UNIT), where one is given (ds3d.mocap.prior)
-    learnt: float = 0.35
+    # LEARNT_UNIT), where one is given (ds3d.mocap.prior). Stronger, clean 2D gains and other
+    # proportions than the database's lose (S9: docs/tuning.md)
+    learnt: float = 0.1
 
 
 def fit_pose(
