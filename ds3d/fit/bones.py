@@ -63,9 +63,20 @@ def bone_scales(group_scales: torch.Tensor) -> torch.Tensor:
 
 def scaling_map(group_scales: torch.Tensor) -> torch.Tensor:
     """(..., G) scales -> (..., 14, 14) A, with A @ pose the pose with its bones scaled."""
-    mix = ROOT_MIX.to(group_scales).expand(NUM_JOINTS, NUM_JOINTS)
-    path = PATH.to(group_scales)
-    return mix + (path * bone_scales(group_scales)[..., None, :]) @ BONE_MATRIX.to(group_scales)
+    return bone_scaling_map(bone_scales(group_scales))
+
+
+def bone_scaling_map(scales: torch.Tensor) -> torch.Tensor:
+    """(..., B) one scale per bone -> (..., 14, 14) A, with A @ pose the pose with its bones
+    scaled."""
+    mix = ROOT_MIX.to(scales).expand(NUM_JOINTS, NUM_JOINTS)
+    return mix + (PATH.to(scales) * scales[..., None, :]) @ BONE_MATRIX.to(scales)
+
+
+def with_bone_lengths(poses: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """Poses (..., 14, 3) mm with each bone's direction kept and its length set to lengths
+    (..., B) mm (the two hip bones' alike: the root is their midpoint); the root stays."""
+    return bone_scaling_map(lengths / bone_lengths(poses).clamp_min(1e-3)) @ poses
 
 
 def scale_derivatives(poses: torch.Tensor, group_scales: torch.Tensor) -> torch.Tensor:

@@ -17,7 +17,13 @@ import torch
 import torch.nn.functional as F
 
 from ds3d.fit import gauss_newton
-from ds3d.fit.bones import GROUP_LOG_SD, scale_derivatives, scaling_map
+from ds3d.fit.bones import (
+    GROUP_LOG_SD,
+    bone_lengths,
+    scale_derivatives,
+    scaling_map,
+    with_bone_lengths,
+)
 from ds3d.fit.camera import (
     CameraFrame,
     initial_params,
@@ -179,6 +185,20 @@ SHIFT_SD = 0.05
 LEARNT_UNIT = 100.0
 
 
+# The learnt pose's bones are held within this factor of the neighbours' (their weighted mean): a
+# network's answer to an ambiguous depth averages a limb's ways and shortens it (a forearm of
+# 95 mm on an LSP photo); on Human3.6M S9 no figure moves (docs/tuning.md).
+LEARNT_BONE_BAND = 1.25
+
+
+def within_band(learnt: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """learnt (B, 14, 3) mm with each bone's length clamped to within LEARNT_BONE_BAND of
+    lengths (B, 13) mm, its direction kept."""
+    own = bone_lengths(learnt)
+    held = torch.minimum(torch.maximum(own, lengths / LEARNT_BONE_BAND), lengths * LEARNT_BONE_BAND)
+    return with_bone_lengths(learnt, held)
+
+
 class PoseProblem:
     """eq:energyMin2's unknowns z (B, C + G + T): C PCA coefficients of the weighted
     neighbours, in standard deviations (every direction the same scale for the solver), and
@@ -194,6 +214,8 @@ class PoseProblem:
         self.mean = mean.unflatten(-1, (NUM_JOINTS, 3))  # (B, 14, 3)
         self.basis = (basis * sigma.clamp_min(1e-3)[..., None]).unflatten(-1, (NUM_JOINTS, 3))
         if learnt is not None:
+            lengths = (self.share[..., None] * bone_lengths(neighbours)).sum(-2)  # (B, 13)
+            self.learnt = learnt = within_band(learnt, lengths)
             self.basis = torch.cat([self.basis, (learnt - self.mean)[:, None]], 1)
         self.components = c = self.basis.shape[1]
         self.groups = g = len(BONE_GROUPS) if proportions else 0

@@ -119,9 +119,13 @@ def look_at(rays: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def camera_rays(joints_2d: Tensor, intrinsics: Tensor) -> Tensor:
-    """Pixels (B, 14, 2) -> their rays K^-1 (u, v, 1) (B, 14, 3) under intrinsics (B, 3, 3)."""
+    """Pixels (B, 14, 2) -> their rays K^-1 (u, v, 1) (B, 14, 3) under intrinsics (B, 3, 3);
+    under a singular K (no camera has one, but a request may), (u, v, 1) as if K were I."""
     homogeneous = torch.cat([joints_2d, torch.ones_like(joints_2d[..., :1])], -1)
-    return homogeneous @ torch.linalg.inv(intrinsics).transpose(-1, -2)
+    inverse, info = torch.linalg.inv_ex(intrinsics)
+    eye = torch.eye(3, dtype=inverse.dtype, device=inverse.device)
+    inverse = torch.where((info != 0)[:, None, None], eye, inverse)
+    return homogeneous @ inverse.transpose(-1, -2)
 
 
 def prior_features(points: Tensor, visible: Tensor) -> Tensor:

@@ -14,12 +14,14 @@ from ds3d.fit.camera import (
 from ds3d.fit.gauss_newton import Residuals
 from ds3d.fit.selection import top_weighted
 from ds3d.fit.solve import (
+    LEARNT_BONE_BAND,
     EnergyWeights,
     PoseProblem,
     fit_projection,
     projection_problem,
     turn,
     weighted_pca,
+    within_band,
 )
 from ds3d.skeleton import BONE_GROUPS, hip_midpoint
 
@@ -118,6 +120,26 @@ def test_scaled_bones_keep_the_root_and_the_directions():
     cosine = torch.nn.functional.cosine_similarity(
         bone_vectors(scaled), bone_vectors(poses), dim=-1
     )
+    torch.testing.assert_close(cosine, torch.ones_like(cosine))
+
+
+def test_a_learnt_pose_keeps_its_bones_within_the_band_of_the_neighbours():
+    """Each bone's direction kept, its length clamped to within LEARNT_BONE_BAND of the given
+    lengths: a bone inside the band unchanged, one outside at its edge."""
+    g = torch.Generator().manual_seed(4)
+    poses = torch.randn(3, 14, 3, generator=g, dtype=torch.float64) * 200
+    own = bone_lengths(poses)
+    groups = torch.rand(3, len(BONE_GROUPS), generator=g, dtype=torch.float64) * 3 + 0.2
+    factors = bone_scales(groups)  # 0.2-3.2, the two hips alike (the root is their midpoint)
+    lengths = own * factors  # own = lengths / factor
+    held = within_band(poses, lengths)
+    expected = torch.minimum(
+        torch.maximum(own, lengths / LEARNT_BONE_BAND), lengths * LEARNT_BONE_BAND
+    )
+    assert bool(((factors > 1.25) | (factors < 0.8)).any())  # some outside the band
+    torch.testing.assert_close(bone_lengths(held), expected)
+    torch.testing.assert_close(hip_midpoint(held), hip_midpoint(poses))
+    cosine = torch.nn.functional.cosine_similarity(bone_vectors(held), bone_vectors(poses), dim=-1)
     torch.testing.assert_close(cosine, torch.ones_like(cosine))
 
 

@@ -77,6 +77,16 @@ def test_camera_rays_undo_the_intrinsics():
     torch.testing.assert_close(rays, points / points[..., 2:], atol=1e-5, rtol=1e-5)
 
 
+def test_a_singular_camera_gives_finite_rays():
+    k = torch.zeros(2, 3, 3)
+    k[1] = torch.tensor([[1000.0, 0, 500], [0, 1000, 500], [0, 0, 1]])
+    pixels = torch.rand(2, NUM_JOINTS, 2) * 1000
+    rays = camera_rays(pixels, k)
+    assert bool(torch.isfinite(rays).all())
+    torch.testing.assert_close(rays[0, :, :2], pixels[0])  # as if K were the identity
+    torch.testing.assert_close(rays[1, :, :2], (pixels[1] - 500) / 1000)
+
+
 def test_features_are_the_normalised_visible_joints_and_their_flags():
     points = torch.rand(4, NUM_JOINTS, 2) * 200
     visible = torch.rand(4, NUM_JOINTS) > 0.3
