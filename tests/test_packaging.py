@@ -35,7 +35,7 @@ MODEL_FILES = {
     "image2d/psm.pt",
     "image2d/facing.pt",
     "image2d/jointnet.pt",
-    "image2d/jointnet_int8.pt",  # the joint network on CPUs without bfloat16
+    "image2d/jointnet_int8.onnx",  # the joint network on CPUs without bfloat16
     "image2d/forest1.pt.gz",
     "image2d/forest2.pt.gz",
     "posedb/manifest.json",

@@ -100,7 +100,7 @@ def register(commands, evals, benches) -> None:
         "quantize-jointnet",
         help="the int8 copy of a 2D model's joint network that the people search runs on a CPU",
         description="Calibrated on the search's levels of LSP train's first images (never held "
-        "out) and written into the model (jointnet_int8.pt; ds3d.image2d.quantized).",
+        "out) and written into the model (jointnet_int8.onnx; ds3d.image2d.quantized).",
     )
     q.add_argument("--model", type=Path, default=DEFAULT_IMAGE2D)
     q.add_argument("--images", type=int, default=100, help="LSP train images to calibrate on")

@@ -215,9 +215,10 @@ def _run(net: nn.Module, padded: Tensor) -> Tensor:
     """The network on its padded input (B, 3, H', W') in its dtype and on its device (as
     padded_logits; an int8 network, ds3d.image2d.quantized, on float32 input on the CPU) ->
     (B, 14, H' / STRIDE, W' / STRIDE) float32 logits on its device."""
+    if getattr(net, "int8", False):  # ONNX Runtime's, on the CPU (ds3d.image2d.quantized)
+        return net(padded)
     weight = next(net.parameters(), padded)
     autocast = weight.dtype == torch.float32 and weight.is_cpu and CPU_BFLOAT16
-    autocast &= not getattr(net, "int8", False)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
         # channels-last, as trained: the memory format oneDNN's convolutions run fastest in
         padded = padded.to(weight.device, weight.dtype, memory_format=torch.channels_last)

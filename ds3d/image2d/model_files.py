@@ -2,7 +2,7 @@
 
 A model directory holds manifest.json and the files it names: one gzip-compressed forest per
 cascade layer (forest1.pt.gz, ...), the PSM's mixtures (psm.pt), and the joint network
-(jointnet.pt; its int8 copy for the people search, jointnet_int8.pt, ds3d.image2d.quantized)
+(jointnet.pt; its int8 copy for the people search, jointnet_int8.onnx, ds3d.image2d.quantized)
 and/or the facing CNN (facing.pt). The manifest records the parameters (EstimatorParams,
 flat), the training configuration and seed, the data and its terms, the training time and the
 measured metrics.
@@ -13,13 +13,11 @@ from __future__ import annotations
 import gzip
 import io
 import json
-import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, cast
 
 import torch
-from torch import nn
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.facing import FacingNet
@@ -27,11 +25,11 @@ from ds3d.image2d.forest import Forest
 from ds3d.image2d.jointnet import CPU_BFLOAT16, JointNet, JointNetShape, fold_batch_norms
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import PairwiseMixtures
-from ds3d.image2d.quantized import int8_available, int8_jointnet
+from ds3d.image2d.quantized import Int8JointNet, int8_available
 
 NET_FILES = {"facing": "facing.pt", "jointnet": "jointnet.pt"}
 PSM_FILE = "psm.pt"
-INT8_FILE = "jointnet_int8.pt"
+INT8_FILE = "jointnet_int8.onnx"
 
 
 @dataclass
@@ -45,7 +43,7 @@ class Model2D:
     params: EstimatorParams
     facing: FacingNet | None = None
     jointnet: JointNet | None = None
-    jointnet_int8: nn.Module | None = None
+    jointnet_int8: Int8JointNet | None = None
 
 
 def load_model(model_dir: Path, int8: bool = True) -> Model2D:
@@ -66,11 +64,10 @@ def load_model(model_dir: Path, int8: bool = True) -> Model2D:
             shape = JointNetShape(tuple(shape["widths"]), tuple(shape["blocks"]))
             jointnet = load_jointnet(model_dir / jointnet, shape)
         quantized = None
-        if int8 and int8_file and jointnet and int8_available():
-            with warnings.catch_warnings():  # torch's notices on quantized tensors' storage
-                warnings.simplefilter("ignore")
-                state = torch.load(model_dir / int8_file, weights_only=True)
-            quantized = int8_jointnet(jointnet, state)
+        # (A copy in torch's int8 format, jointnet_int8.pt, is not read: the float network
+        # runs until `ds3d quantize-jointnet` makes the ONNX one.)
+        if int8 and int8_file == INT8_FILE and jointnet and int8_available():
+            quantized = Int8JointNet((model_dir / int8_file).read_bytes())
     except (KeyError, TypeError, OSError, RuntimeError) as exc:
         raise DataFormatError(f"bad 2D model in {model_dir}: {exc}") from exc
     return Model2D(layers, mixtures, params, facing, jointnet, quantized)
@@ -128,11 +125,11 @@ def replace_jointnet(
     return manifest
 
 
-def save_int8_jointnet(model_dir: Path, quantized: nn.Module, calibration: dict) -> dict:
-    """Put the int8 copy of a model's joint network into it (ds3d.image2d.quantized), with what
-    it was calibrated on. Returns the manifest."""
+def save_int8_jointnet(model_dir: Path, quantized: bytes, calibration: dict) -> dict:
+    """Put the int8 copy of a model's joint network (an ONNX model, ds3d.image2d.quantized) into
+    it, with what it was calibrated on. Returns the manifest."""
     manifest = read_manifest(model_dir)
-    torch.save(quantized.state_dict(), model_dir / INT8_FILE)
+    (model_dir / INT8_FILE).write_bytes(quantized)
     manifest["jointnet_int8"] = INT8_FILE
     manifest["jointnet_int8_calibration"] = calibration
     write_manifest(model_dir, manifest)

@@ -40,9 +40,7 @@ def quantize_model(model_dir: Path, images: int) -> dict:
     ]
     inputs = network_inputs(levels, beyond, SEARCH_BUCKET_STEPS)
     inputs += network_inputs(crops, MARGIN, NET_BUCKET_STEPS)
-    quantized = quantize_jointnet(
-        model.jointnet, [x.contiguous(memory_format=torch.channels_last) for x in inputs]
-    )
+    quantized = quantize_jointnet(model.jointnet, inputs)
     calibration = {
         "engine": ENGINE,
         "images": f"LSP train im0001-im{images:04d}: the search's levels, the person's crop",
