@@ -46,6 +46,8 @@ ROOT = Path(__file__).resolve().parent.parent
 LSP_TEST_FIRST = 1001  # im1001.jpg, LSP's first test image
 H36M_STRIDE = 64  # the protocol's frames (ds3d eval h36m --stride)
 # Wheels the 'cuda' images of PyTorch lack, pinned as requirements/service.txt pins them.
+# onnxruntime (28 MB) is not among them, so that the pack stays within what the device carries:
+# the machine's CPU runs the joint network in float32 there (quantized.int8_available).
 WHEELS = (
     "faiss-cpu",
     "fastapi",

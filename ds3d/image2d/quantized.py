@@ -16,19 +16,23 @@ alone.
 from __future__ import annotations
 
 import copy
+import importlib.util
 import tempfile
 import threading
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import onnxruntime as ort
 import torch
 from torch import Tensor, nn
 
 from ds3d.errors import DataFormatError
 from ds3d.image2d.jointnet import CPU_BFLOAT16, JointNet
+
+if TYPE_CHECKING:
+    import onnxruntime as ort
 
 ENGINE = "onnxruntime"
 # Left in float: the head, whose logits are the search's unaries as they are (no softmax to
@@ -41,8 +45,9 @@ _INPUT, _OUTPUT = "lab", "logits"
 
 def int8_available() -> bool:
     """Whether this machine computes the int8 network faster than the float one: a CPU without
-    bfloat16 (where bfloat16 runs, the float network already does, CPU_BFLOAT16)."""
-    return not CPU_BFLOAT16
+    bfloat16 (where bfloat16 runs, the float network already does, CPU_BFLOAT16), with
+    onnxruntime installed (a dependency; a bare CUDA image may lack it, tools/gpu_check.py)."""
+    return not CPU_BFLOAT16 and importlib.util.find_spec("onnxruntime") is not None
 
 
 def quantize_jointnet(net: JointNet, inputs: Iterable[Tensor]) -> bytes:
@@ -134,6 +139,8 @@ class Int8JointNet(nn.Module):
     def _session(self, threads: int) -> ort.InferenceSession:
         with self._lock:
             if threads not in self._sessions:
+                import onnxruntime as ort
+
                 options = ort.SessionOptions()
                 options.intra_op_num_threads = threads
                 options.inter_op_num_threads = 1
