@@ -193,7 +193,7 @@ LEARNT_BONE_BAND = 1.25
 
 def within_band(learnt: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
     """learnt (B, 14, 3) mm with each bone's length clamped to within LEARNT_BONE_BAND of
-    lengths (B, 13) mm, its direction kept."""
+    lengths (B, 14) mm (one per ds3d.skeleton.BONES), its direction kept."""
     own = bone_lengths(learnt)
     held = torch.minimum(torch.maximum(own, lengths / LEARNT_BONE_BAND), lengths * LEARNT_BONE_BAND)
     return with_bone_lengths(learnt, held)
@@ -214,7 +214,7 @@ class PoseProblem:
         self.mean = mean.unflatten(-1, (NUM_JOINTS, 3))  # (B, 14, 3)
         self.basis = (basis * sigma.clamp_min(1e-3)[..., None]).unflatten(-1, (NUM_JOINTS, 3))
         if learnt is not None:
-            lengths = (self.share[..., None] * bone_lengths(neighbours)).sum(-2)  # (B, 13)
+            lengths = (self.share[..., None] * bone_lengths(neighbours)).sum(-2)  # (B, 14), BONES
             self.learnt = learnt = within_band(learnt, lengths)
             self.basis = torch.cat([self.basis, (learnt - self.mean)[:, None]], 1)
         self.components = c = self.basis.shape[1]
