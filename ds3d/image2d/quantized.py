@@ -65,20 +65,18 @@ def quantize_jointnet(net: JointNet, inputs: Iterable[Tensor]) -> bytes:
             f"quantizing the joint network needs the onnx package (the dev extra): {exc}"
         ) from exc
 
-    batches = iter(inputs)
-    first = next(batches)
+    batches = [{_INPUT: x.float().contiguous().numpy()} for x in inputs]
 
     class Inputs(CalibrationDataReader):
         def __init__(self):
-            self.left = iter([first, *batches])
+            self.left = iter(batches)
 
         def get_next(self) -> dict[str, np.ndarray] | None:
-            x = next(self.left, None)
-            return None if x is None else {_INPUT: x.float().contiguous().numpy()}
+            return next(self.left, None)
 
     with tempfile.TemporaryDirectory() as tmp:
         exact, rounded = Path(tmp) / "float.onnx", Path(tmp) / "int8.onnx"
-        _export(net, first, exact)
+        _export(net, torch.from_numpy(batches[0][_INPUT]), exact)
         quantize_static(
             str(exact),
             str(rounded),
