@@ -16,6 +16,7 @@ import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -151,8 +152,10 @@ class Pipeline:
         finder = self.finder
         candidates = finder.find(inputs)
         search_ms = 1000 * (time.perf_counter() - t_start)
-        estimate = self.estimate_2d([item.image for item in inputs], candidates)
-        answer = finder.answer(inputs, candidates, estimate)
+        images = [item.image for item in inputs]
+        candidates, estimate, answer = finder.pose_and_answer(
+            inputs, candidates, partial(self.estimate_2d, images)
+        )
         image_index = torch.tensor([c.image for c in candidates], dtype=torch.long)[answer.rows]
         people = [inputs[i] for i in image_index.tolist()]
         parts = []  # the lifter takes intrinsics for all of its batch or for none
@@ -190,9 +193,7 @@ class Pipeline:
                     views=[candidates[k].views for k in rows],
                 )
                 parts.append((torch.tensor(rows), part))
-        estimate = parts[0][1] if len(parts) == 1 else gather_rows(parts, len(candidates))
-        estimate.timings = {k: sum(part.timings.get(k, 0.0) for _, part in parts) for k in STEPS_2D}
-        return estimate
+        return parts[0][1] if len(parts) == 1 else gather_rows(parts, len(candidates))
 
     @torch.inference_mode()
     def lift_estimate(

@@ -188,7 +188,6 @@ class PoseEstimator2D:
             best = results[0]
         else:
             best = gather_rows(list(zip(parts, results, strict=True)), len(crops))
-            best.timings = {k: sum(r.timings[k] for r in results) for k in results[0].timings}
         timings = {k: round(v, 6) for k, v in best.timings.items()}
         best = person_centric(best)
         best.timings = {**timings, "total": round(time.perf_counter() - t_start, 6)}

@@ -104,7 +104,8 @@ def keep_better(a: Estimate2D, b: Estimate2D) -> Estimate2D:
 
 def gather_rows(parts: list[tuple[torch.Tensor, Estimate2D]], b: int) -> Estimate2D:
     """One Estimate2D of b images from parts that each hold some of them: (rows (n,) long,
-    the estimate of those n images). Unary maps are padded to a common size."""
+    the estimate of those n images). Unary maps are padded to a common size; the timings are
+    the sums of the parts'."""
     h = max(part.unaries.shape[2] for _, part in parts)
     w = max(part.unaries.shape[3] for _, part in parts)
     rows = torch.cat([r for r, _ in parts])
@@ -114,6 +115,10 @@ def gather_rows(parts: list[tuple[torch.Tensor, Estimate2D]], b: int) -> Estimat
     def cat(get):
         return torch.cat([get(part) for _, part in parts])[order]
 
+    timings: dict[str, float] = {}
+    for _, part in parts:
+        for step, seconds in part.timings.items():
+            timings[step] = timings.get(step, 0.0) + seconds
     return Estimate2D(
         cat(lambda e: e.joints_2d),
         cat(lambda e: e.joint_scores),
@@ -122,4 +127,5 @@ def gather_rows(parts: list[tuple[torch.Tensor, Estimate2D]], b: int) -> Estimat
         cat(lambda e: e.map_to_image),
         cat(lambda e: e.scale),
         cat(lambda e: e.facing_camera),
+        timings,
     )

@@ -7,12 +7,15 @@ stage (PeopleFinder.find) and, once it has posed them, who is answered (PeopleFi
     answer   per image, non-maximum suppression of the crops' poses by person score (their
              boxes overlapping, or one person found twice: ds3d.people.same_person), the best
              ("best") or those scoring min_score ("all"), then the weak proposals apart from them
+
+pose_and_answer runs the 2D stage (the caller's) between the two, the weak proposals after the
+others and only where they lie apart from the people those answered.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +26,7 @@ from ds3d.errors import DataFormatError
 from ds3d.image2d.crops import image_share
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.jointnet import ScaledLogits
-from ds3d.image2d.result import Estimate2D
+from ds3d.image2d.result import Estimate2D, gather_rows
 from ds3d.inputs import ImageInput
 from ds3d.people.same_person import joints_on_bones, shared_joints
 from ds3d.people.score import PersonScore, person_evidence
@@ -147,6 +150,47 @@ class PeopleFinder:
             Candidate(image, boxes[k], False, True, (), float(scores[k]), kind)
             for k, kind in chosen
         ]
+
+    def pose_and_answer(
+        self,
+        inputs: Sequence[ImageInput],
+        candidates: list[Candidate],
+        pose_2d: Callable[[list[Candidate]], Estimate2D],
+    ) -> tuple[list[Candidate], Estimate2D, Answer]:
+        """The candidates (find's) posed by the 2D stage (pose_2d: candidates -> their
+        Estimate2D, in their order) and answered (answer), in two rounds: first all but the
+        weak ones; then the weak ones whose box overlaps nobody those answered by more than
+        weak_apart, the others being second readings of them that answer would not answer.
+        Returns the candidates posed, in the order of their estimate, and the answer."""
+        first = [c for c in candidates if not c.weak]
+        estimate = pose_2d(first)
+        answer = self.answer(inputs, first, estimate)
+        weak = self._apart([c for c in candidates if c.weak], first, estimate, answer)
+        if not weak:
+            return first, estimate, answer
+        posed = first + weak
+        rounds = [
+            (torch.arange(len(first)), estimate),
+            (torch.arange(len(first), len(posed)), pose_2d(weak)),
+        ]
+        estimate = gather_rows(rounds, len(posed))
+        return posed, estimate, self.answer(inputs, posed, estimate)
+
+    def _apart(
+        self, weak: list[Candidate], posed: list[Candidate], estimate: Estimate2D, answer: Answer
+    ) -> list[Candidate]:
+        """The weak candidates whose box (widened as person_boxes widens a pose's) overlaps no
+        person answered in its image, of those `posed` (estimate, answer), by more than
+        weak_apart (IoU)."""
+        boxes = person_boxes(estimate.joints_2d[answer.rows].cpu().numpy())
+        image = np.array([posed[k].image for k in answer.rows.tolist()], dtype=np.int64)
+        out = []
+        for candidate in weak:
+            others = boxes[image == candidate.image]
+            box = person_boxes(candidate.box.reshape(1, 2, 2))
+            if not len(others) or iou(box, others).max() <= self.params.weak_apart:
+                out.append(candidate)
+        return out
 
     def evidence(
         self, estimate: Estimate2D, candidates: Sequence[Candidate] | None = None

@@ -95,6 +95,12 @@ class SearchParams:
         their pose's box overlaps nobody answered by more than weak_overlap (IoU): on a coarse
         level's maps large people often score below the floor, while the crop poses them well;
         a weak proposal near a person found is mostly a second reading of them.
+    weak_apart: so the weak proposals go through the 2D stage after the others, and only those
+        whose box (widened as ds3d.boxes.person_boxes widens a pose's) overlaps nobody the
+        others answered by more than weak_apart (IoU; PeopleFinder.pose_and_answer): looser
+        than weak_overlap, as a proposal's box is not yet its pose's. On the held-out canvases
+        it leaves two in three weak proposals unposed and the people answered the same
+        (docs/tuning.md).
     beyond_edge: how far each level reaches past the image's edges, as a fraction of the
         person extent it seeks: zeros there to the joint network, which learnt where the joints
         a photo cuts off lie (ds3d.training.jointnet.edge_cut), so that a person the frame cuts
@@ -122,6 +128,7 @@ class SearchParams:
     weak_floor: float = 60.0
     weak_people: int = 4
     weak_overlap: float = 0.05
+    weak_apart: float = 0.2
     beyond_edge: float = 0.15
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ds3d.image2d.params import EstimatorParams
+from ds3d.image2d.result import Estimate2D
 from ds3d.inputs import ImageInput
 from ds3d.people.finder import Candidate, PeopleFinder
 from ds3d.people.score import PersonScore
@@ -104,6 +105,45 @@ def test_a_weak_candidate_is_answered_only_apart_from_the_people_answered():
     inputs = [ImageInput(np.zeros((480, 640, 3), np.uint8), people="all", min_score=0.5)]
     answer = finder.answer(inputs, candidates, estimate)  # type: ignore[arg-type]
     assert answer.rows.tolist() == [0, 2] and answer.found.tolist() == [True, True, True, False]
+
+
+def test_weak_proposals_are_posed_only_apart_from_the_people_the_others_answered():
+    """pose_and_answer poses the weak proposals after the others, and only those whose box lies
+    apart from the people the others answered: one on an answered person would not be answered
+    (weak_overlap), so the 2D stage is spared it."""
+    person = np.stack([np.linspace(10.0, 60.0, NUM_JOINTS), np.linspace(5.0, 90.0, NUM_JOINTS)], 1)
+
+    def proposal(shift: float, score: float, weak: bool) -> Candidate:
+        box = np.array([10.0, 5.0, 60.0, 90.0], np.float32) + shift
+        return Candidate(0, box, False, True, (), score, weak)
+
+    rounds: list[list[float]] = []
+
+    def pose_2d(chosen: list[Candidate]) -> Estimate2D:
+        rounds.append([float(c.box[0]) for c in chosen])
+        n = len(chosen)
+        joints = torch.from_numpy(np.stack([person + (c.box[0] - 10.0) for c in chosen])).float()
+        maps, zeros, ones = torch.zeros(n, NUM_JOINTS, 1, 1), torch.zeros(n), torch.ones(n)
+        affine = torch.zeros(n, 2, 3)
+        return Estimate2D(joints, maps[..., 0, 0], zeros, maps, affine, ones, ones)
+
+    def evidence(estimate, candidates) -> torch.Tensor:
+        psm = torch.full((len(candidates),), -200.0, dtype=torch.float64)  # a person each
+        root = torch.tensor([c.proposal_score for c in candidates], dtype=torch.float64)
+        return torch.stack([psm, torch.zeros_like(psm), root], -1)
+
+    finder = PeopleFinder(SimpleNamespace(), SearchParams(), SCORE)  # type: ignore[arg-type]
+    finder.evidence = evidence  # type: ignore[method-assign]
+    inputs = [ImageInput(np.zeros((480, 640, 3), np.uint8), people="all", min_score=0.5)]
+    candidates = [
+        proposal(0.0, 300.0, False),
+        proposal(10.0, 90.0, True),
+        proposal(300.0, 90.0, True),
+    ]
+    posed, estimate, answer = finder.pose_and_answer(inputs, candidates, pose_2d)
+    assert rounds == [[10.0], [310.0]]
+    assert [float(c.box[0]) for c in posed] == [10.0, 310.0]
+    assert answer.rows.tolist() == [0, 1] and estimate.joints_2d[1, 0, 0] == 310.0
 
 
 def _candidates(monkeypatch, found: Proposals, image: np.ndarray, people: str = "all"):
