@@ -99,8 +99,8 @@ class SearchParams:
         whose box (widened as ds3d.boxes.person_boxes widens a pose's) overlaps nobody the
         others answered by more than weak_apart (IoU; PeopleFinder.pose_and_answer): looser
         than weak_overlap, as a proposal's box is not yet its pose's. On the held-out canvases
-        it leaves two in three weak proposals unposed and the people answered the same
-        (docs/tuning.md).
+        about half the weak proposals are then not posed (1.6 of 3.3 a canvas posed), and the
+        people answered are the same (docs/tuning.md).
     beyond_edge: how far each level reaches past the image's edges, as a fraction of the
         person extent it seeks: zeros there to the joint network, which learnt where the joints
         a photo cuts off lie (ds3d.training.jointnet.edge_cut), so that a person the frame cuts
