@@ -6,6 +6,7 @@ from ds3d.fit.camera import rotation_matrix
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
 from ds3d.mocap.prior import (
+    FEATURES,
     NETWORKS,
     NOISE_GATE,
     PACKED_SIDE,
@@ -13,6 +14,7 @@ from ds3d.mocap.prior import (
     PriorShape,
     ResidualMLP,
     camera_rays,
+    folded,
     lifted,
     look_at,
     mirrored,
@@ -178,12 +180,33 @@ def test_the_estimated_noise_level_blends_the_clean_and_the_noisy_networks_pose(
     close(blended[[0, 1, 3, 4]], alone("clean")[[0, 1, 3, 4]])
 
 
+def test_a_folded_network_answers_as_the_network_does_in_eval_mode():
+    """folded: each batch norm folded into its linear layer, the dropouts gone: the same
+    function, up to float32's rounding of the folded weights."""
+    torch.manual_seed(0)
+    net = ResidualMLP(PriorShape(width=32, blocks=2))
+    for module in net.modules():  # statistics and affine maps other than the initial identity
+        if isinstance(module, torch.nn.BatchNorm1d):
+            module.running_mean.uniform_(-1, 1)
+            module.running_var.uniform_(0.5, 2)
+            torch.nn.init.uniform_(module.weight, 0.5, 1.5)
+            torch.nn.init.uniform_(module.bias, -0.5, 0.5)
+    net.eval()
+    fused = folded(net)
+    kinds = (torch.nn.BatchNorm1d, torch.nn.Dropout)
+    assert not any(isinstance(module, kinds) for module in fused.modules())
+    features = torch.randn(8, FEATURES)
+    with torch.no_grad():
+        torch.testing.assert_close(fused(features), net(features), rtol=1e-4, atol=1e-4)
+
+
 def test_a_prior_moved_to_a_device_is_a_copy():
     """Lifter(device=...) moves its prior there; the prior it was given stays where it was."""
     prior = LiftingPrior(small_nets(), {})
     moved = prior.to("cpu")
     for name in NETWORKS:
         assert moved.nets[name] is not prior.nets[name]
-    torch.nn.init.zeros_(moved.nets["clean"].head.weight)  # changing the copy
+        assert moved.running[name] is not prior.running[name]
+    torch.nn.init.zeros_(moved.running["clean"].head.weight)  # changing the copy's
     query = a_query()
     assert not torch.equal(moved(*query), prior(*query))
