@@ -21,7 +21,7 @@ import torch
 from ds3d.data.h36m import TEST_SUBJECT, action_name, load_cameras, load_h36m_sequences
 from ds3d.evaluation.metrics import mpjpe, pa_mpjpe, rigid_error
 from ds3d.fit.bones import scaling_map
-from ds3d.lifter import PAPER_OVERRIDES
+from ds3d.lifter import PAPER_OVERRIDES, UNWEIGHTED_OVERRIDES
 from ds3d.people.tracking import follow, jitter
 from ds3d.skeleton import BONE_GROUPS, NUM_JOINTS, hip_midpoint
 from ds3d.util.progress import progress
@@ -169,7 +169,7 @@ VARIANTS: dict[str, tuple[dict, dict]] = {
         {"outlier_px": 40.0},
         {**EVERY_SET, "select_on_all_joints": False},
     ),
-    "unweighted": ({}, {"weighting": False, "selection_neighbours": 256}),
+    "unweighted": ({}, UNWEIGHTED_OVERRIDES),
     "database-proportions": ({}, {"proportions": False}),
     "database-proportions-noise10": ({"noise_px": 10.0}, {"proportions": False}),
     "paper": ({}, PAPER_OVERRIDES),

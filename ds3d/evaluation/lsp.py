@@ -25,20 +25,19 @@ from ds3d.evaluation.metrics import (
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.result import Estimate2D
 from ds3d.io.images import read_image
-from ds3d.lifter import LifterConfig
+from ds3d.lifter import UNWEIGHTED_OVERRIDES, LifterConfig
 from ds3d.pipeline import Pipeline, PipelineConfig
 from ds3d.skeleton import JOINT_NAMES
 from ds3d.util.progress import progress
 
 # The refinement's variants: the paper's fig:query protocol (one iteration, K = 256 without
-# weighting, eq:energyS on all of them) and the full method (K = 256 -> K_w weighted,
+# weighting, eq:energyS on all of them) and the full method (K = 128 -> K_w weighted,
 # PipelineConfig's iterations), as (PipelineConfig fields, LifterConfig fields).
-UNWEIGHTED = {"weighting": False, "selection_neighbours": 256}
 REFINEMENT_VARIANTS: dict[str, tuple[dict, dict]] = {
     "full": ({}, {}),
-    "all-only": ({"iterations": 1}, {"joint_sets": ("all",), **UNWEIGHTED}),
-    "energy": ({"iterations": 1, "selection": "energy"}, UNWEIGHTED),
-    "posterior": ({"iterations": 1}, UNWEIGHTED),
+    "all-only": ({"iterations": 1}, {"joint_sets": ("all",), **UNWEIGHTED_OVERRIDES}),
+    "energy": ({"iterations": 1, "selection": "energy"}, UNWEIGHTED_OVERRIDES),
+    "posterior": ({"iterations": 1}, UNWEIGHTED_OVERRIDES),
 }
 
 
