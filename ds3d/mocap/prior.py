@@ -95,11 +95,12 @@ def folded(net: ResidualMLP) -> ResidualMLP:
     then) are gone: the same function, in a third of the layers' passes over the features."""
     out = copy.deepcopy(net).eval()
 
-    def without_norms(layers: nn.Sequential) -> nn.Sequential:
+    def without_norms(layers: nn.Module) -> nn.Sequential:
         kept: list[nn.Module] = []
-        for layer in layers:
-            if isinstance(layer, nn.BatchNorm1d):
-                kept[-1] = fuse_linear_bn_eval(kept[-1], layer)
+        for layer in layers.children():
+            before = kept[-1] if kept else None
+            if isinstance(layer, nn.BatchNorm1d) and isinstance(before, nn.Linear):
+                kept[-1] = fuse_linear_bn_eval(before, layer)
             elif not isinstance(layer, nn.Dropout):
                 kept.append(layer)
         return nn.Sequential(*kept)
