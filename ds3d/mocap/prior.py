@@ -92,7 +92,7 @@ class ResidualMLP(nn.Module):
 def folded(net: ResidualMLP) -> ResidualMLP:
     """For inference: a copy of `net` in eval mode whose every batch norm (an affine map per
     feature then) is folded into the linear layer before it, and whose dropouts (identities
-    then) are gone: the same function, in a third of the layers' passes over the features."""
+    then) are gone: the same function, with one pass over the features less per layer."""
     out = copy.deepcopy(net).eval()
 
     def without_norms(layers: nn.Module) -> nn.Sequential:
