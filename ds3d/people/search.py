@@ -63,7 +63,8 @@ class SearchParams:
         tall) min_height alone asked for 26 px people, a level 2.7 times the image's size
         that cost most of the search. 72 px is min_height of a 480 px photo (the people
         protocol's canvases, whose people it leaves as they were); 64 px made an LSP image's
-        finest level 1.1 times its size, the search a third slower (docs/tuning.md).
+        finest level 1.1 times its size, the search 1.2-1.4 times as slow
+        (docs/tuning.md).
     level_ratio: the person extent of one pyramid level over the previous one's.
     psm_stride: px of the working scale per PSM cell (the network's maps max-pooled to it).
     peak_radius: cells; a root score is a proposal where it is the maximum within the radius.

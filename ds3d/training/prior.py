@@ -2,8 +2,10 @@
 
 Every batch draws fresh 2D-3D pairs from the database's body-frame poses (`draw`):
 - mirrored (left and right swapped) half the time;
-- each bone group scaled by exp(N(0, bone_sd)): other people's proportions, and other
-  laboratories' marker placements (Human3.6M's and CMU's hip widths differ by a third);
+- each bone group scaled by exp(N(0, sd_g)): other people's proportions, and other
+  laboratories' marker placements (Human3.6M's and CMU's hip widths differ by a third); sd_g in
+  proportion to how much people's groups differ (ds3d.fit.bones.GROUP_LOG_SD: a head or a
+  pelvis more than a forearm), bone_sd their RMS;
 - seen by a camera at a random azimuth, elevation and roll, at a random distance (log-uniform),
   as photos are taken; then as the prior sees a query, through the camera turned to look at
   the person (ds3d.mocap.prior.look_at);
@@ -28,7 +30,7 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 from torch import Tensor
 
-from ds3d.fit.bones import scaling_map
+from ds3d.fit.bones import GROUP_LOG_SD, scaling_map
 from ds3d.fit.camera import rotation_matrix
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
@@ -64,7 +66,9 @@ class PriorTraining:
     seed: int = 0
     shape: PriorShape = field(default_factory=PriorShape)  # each lifting network's
     noise_shape: PriorShape = field(default_factory=lambda: NOISE_SHAPE)
-    bone_sd: float = 0.1  # sd of each bone group's log scale
+    # the RMS over the bone groups of the sd of their log scales (`group_spread`): wider than
+    # people's (0.064) for other laboratories' joint placements
+    bone_sd: float = 0.16
     elevation_deg: tuple[float, float] = (-5.0, 30.0)  # the camera above the person, uniform
     roll_sd_deg: float = 5.0
     distance_mm: tuple[float, float] = (3000.0, 9000.0)  # log-uniform
@@ -104,6 +108,12 @@ def view_rotations(n: int, cfg: PriorTraining, generator: torch.Generator) -> Te
     return about(2, roll) @ about(0, elevation) @ about(1, azimuth)
 
 
+def group_spread(rms: float) -> Tensor:
+    """(G,) the sd of each bone group's log scale (BONE_GROUPS order): GROUP_LOG_SD rescaled to
+    an RMS of `rms`."""
+    return GROUP_LOG_SD * (rms / GROUP_LOG_SD.pow(2).mean().sqrt())
+
+
 def draw(poses: Tensor, cfg: PriorTraining, generator: torch.Generator) -> Pairs:
     """A batch of cfg.batch pairs from body-frame poses (N, 14, 3) mm (module docstring)."""
     b = cfg.batch
@@ -113,7 +123,7 @@ def draw(poses: Tensor, cfg: PriorTraining, generator: torch.Generator) -> Pairs
 
     pose = poses[torch.randint(len(poses), (b,), generator=generator)]
     pose = torch.where(chance(0.5)[:, None, None], mirrored(pose), pose)
-    log_scales = torch.randn(b, len(BONE_GROUPS), generator=generator) * cfg.bone_sd
+    log_scales = torch.randn(b, len(BONE_GROUPS), generator=generator) * group_spread(cfg.bone_sd)
     views = view_rotations(b, cfg, generator).transpose(-1, -2)
     target = pose @ views  # the database's proportions: the fit rescales to the person's
     seen = (scaling_map(log_scales.exp()) @ pose) @ views  # camera-oriented

@@ -4,14 +4,21 @@ import torch
 
 from ds3d.cli import main as cli
 from ds3d.errors import DataFormatError
-from ds3d.fit.bones import bone_lengths
+from ds3d.fit.bones import GROUP_LOG_SD, bone_lengths
 from ds3d.lifter import Lifter
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
 from ds3d.mocap.prior import NETWORKS, PriorShape
 from ds3d.mocap.retrieval import database_digest
 from ds3d.skeleton import NUM_JOINTS, hip_midpoint
-from ds3d.training.prior import PriorTraining, draw, noise_error, train_network, train_prior
+from ds3d.training.prior import (
+    PriorTraining,
+    draw,
+    group_spread,
+    noise_error,
+    train_network,
+    train_prior,
+)
 from ds3d.util.paths import MODELS_DIR
 
 # Seconds, not minutes: small networks, a few hundred steps of small batches.
@@ -49,6 +56,14 @@ def test_a_distant_pair_is_the_pose_seen_from_its_camera():
     expected = bone_lengths(db.poses[0]).sort(-1).values.expand_as(lengths)
     torch.testing.assert_close(lengths, expected, atol=1e-2, rtol=0)
     torch.testing.assert_close(hip_midpoint(pairs.target), torch.zeros(cfg.batch, 3))
+
+
+def test_the_bone_groups_spread_as_people_differ_at_the_rms_asked():
+    """The groups that differ more between people (a head, a pelvis) are drawn wider than those
+    that differ less (a forearm), in the same proportions, at the RMS asked."""
+    spread = group_spread(0.16)
+    torch.testing.assert_close(spread.pow(2).mean().sqrt(), torch.tensor(0.16))
+    torch.testing.assert_close(spread / spread.max(), GROUP_LOG_SD / GROUP_LOG_SD.max())
 
 
 def test_hidden_joints_are_flagged_and_zeroed():
