@@ -46,6 +46,12 @@ PATH_GROUP = PATH[..., None] * GROUP  # (14, B, G): 1 where a bone of group g le
 GROUP_LOG_SD = torch.tensor([0.072, 0.026, 0.115, 0.096, 0.044, 0.017, 0.042, 0.026])
 
 
+def group_spread(rms: float = 1.0) -> torch.Tensor:
+    """(G,) each bone group's spread of log scales, BONE_GROUPS order: GROUP_LOG_SD rescaled to an
+    RMS of `rms` (one: the units of the 3D fit's prior on a person's scales)."""
+    return GROUP_LOG_SD * (rms / GROUP_LOG_SD.pow(2).mean().sqrt())
+
+
 def bone_vectors(poses: torch.Tensor) -> torch.Tensor:
     """(..., 14, 3) mm -> (..., B, 3) mm, child minus parent, in BONES order."""
     return BONE_MATRIX.to(poses) @ poses

@@ -18,8 +18,8 @@ import torch.nn.functional as F
 
 from ds3d.fit import gauss_newton
 from ds3d.fit.bones import (
-    GROUP_LOG_SD,
     bone_lengths,
+    group_spread,
     scale_derivatives,
     scaling_map,
     with_bone_lengths,
@@ -272,7 +272,7 @@ class PoseProblem:
         # Jacobians of the terms that only the pose moves: zero beyond its coefficients
         d_pose = F.pad(self.basis.flatten(2).transpose(1, 2), (0, n - c))[:, None]  # (B,1,42,n)
         # the scales' prior in units of each group's spread, normalised to an RMS of one
-        prior_sd = GROUP_LOG_SD.to(self.mean)[:g] / GROUP_LOG_SD.pow(2).mean().sqrt()
+        prior_sd = group_spread().to(self.mean)[:g]
         prior_jacobian = torch.eye(g, n, dtype=self.mean.dtype, device=self.mean.device)
         prior_jacobian = (prior_jacobian.roll(c, -1) / prior_sd[:, None]).expand(b, 1, g, n)
         shift_jacobian = torch.eye(3, n, dtype=self.mean.dtype, device=self.mean.device)

@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 from torch import Tensor
 
-from ds3d.fit.bones import GROUP_LOG_SD, scaling_map
+from ds3d.fit.bones import group_spread, scaling_map
 from ds3d.fit.camera import rotation_matrix
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
@@ -66,8 +66,8 @@ class PriorTraining:
     seed: int = 0
     shape: PriorShape = field(default_factory=PriorShape)  # each lifting network's
     noise_shape: PriorShape = field(default_factory=lambda: NOISE_SHAPE)
-    # the RMS over the bone groups of the sd of their log scales (`group_spread`): wider than
-    # people's (0.064) for other laboratories' joint placements
+    # the RMS over the bone groups of the sd of their log scales (ds3d.fit.bones.group_spread):
+    # wider than people's (0.064) for other laboratories' joint placements
     bone_sd: float = 0.16
     elevation_deg: tuple[float, float] = (-5.0, 30.0)  # the camera above the person, uniform
     roll_sd_deg: float = 5.0
@@ -106,12 +106,6 @@ def view_rotations(n: int, cfg: PriorTraining, generator: torch.Generator) -> Te
         return rotation_matrix(torch.stack([angle if i == axis else zero for i in range(3)], -1))
 
     return about(2, roll) @ about(0, elevation) @ about(1, azimuth)
-
-
-def group_spread(rms: float) -> Tensor:
-    """(G,) the sd of each bone group's log scale (BONE_GROUPS order): GROUP_LOG_SD rescaled to
-    an RMS of `rms`."""
-    return GROUP_LOG_SD * (rms / GROUP_LOG_SD.pow(2).mean().sqrt())
 
 
 def draw(poses: Tensor, cfg: PriorTraining, generator: torch.Generator) -> Pairs:

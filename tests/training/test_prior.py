@@ -4,7 +4,7 @@ import torch
 
 from ds3d.cli import main as cli
 from ds3d.errors import DataFormatError
-from ds3d.fit.bones import GROUP_LOG_SD, bone_lengths
+from ds3d.fit.bones import GROUP_LOG_SD, bone_lengths, group_spread
 from ds3d.lifter import Lifter
 from ds3d.mocap.database import PoseDatabase
 from ds3d.mocap.normalize import normalize_2d
@@ -14,7 +14,6 @@ from ds3d.skeleton import NUM_JOINTS, hip_midpoint
 from ds3d.training.prior import (
     PriorTraining,
     draw,
-    group_spread,
     noise_error,
     train_network,
     train_prior,
