@@ -11,12 +11,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ds3d.image2d.buckets import bucket
 from ds3d.image2d.params import EstimatorParams
-from ds3d.image2d.psm import PairwiseMixtures, fit_pairwise_mixtures, infer
+from ds3d.image2d.psm import (
+    PSM_CALL_COST,
+    PairwiseMixtures,
+    fit_pairwise_mixtures,
+    infer,
+    no_joint_beyond,
+)
 from ds3d.image2d.result import LOG_EPS, Estimate2D
 from ds3d.skeleton import NUM_JOINTS
-from ds3d.util.groups import group_rows
+from ds3d.util.groups import padded_groups
 from ds3d.util.threads import map_on_threads, split_rows
 
 
@@ -130,14 +135,19 @@ def refine(
 
     def solve(rows: torch.Tensor) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
         """(image, cells (S, 14, 2), score (S,)) of the S problems of each image in rows: the
-        images whose windows pad to one size bucket (ds3d.image2d.buckets) as one batch, the
-        padding -inf, where no joint can go, so that each answers as its own window alone."""
+        images whose windows are of near sizes as one batch (padded_groups, on the pooled
+        cells of S problems each), padded with -inf, where no joint can go, so that each
+        answers as its own window alone."""
         mine = rows.tolist()
-        sizes = (windows[i][0].shape[-2:] for i in mine)
+        pooled_sizes = [
+            (-(-windows[i][0].shape[-2] // pool), -(-windows[i][0].shape[-1] // pool)) for i in mine
+        ]
         out = []
-        for (height, width), group in group_rows((bucket(h), bucket(w)) for h, w in sizes).items():
+        for group in padded_groups(pooled_sizes, PSM_CALL_COST / s):
             images = [mine[k] for k in group]
-            stack = torch.stack([_pad(windows[i][0], height, width) for i in images])
+            height = max(windows[i][0].shape[-2] for i in images)
+            width = max(windows[i][0].shape[-1] for i in images)
+            stack = torch.stack([no_joint_beyond(windows[i][0], height, width) for i in images])
             pooled, best = F.max_pool2d(stack, pool, ceil_mode=True, return_indices=True)
             problems = torch.tensor(
                 [i * s + k for i in images for k in range(s)], device=stack.device
@@ -173,10 +183,3 @@ def refine(
     found = torch.stack([c for _, c, _ in solved]).view(b, s * NUM_JOINTS, 2) + origin[:, None, :]
     joints_2d = cells_to_image(found, estimate.map_to_image).view(b, s, NUM_JOINTS, 2)
     return Refinement(joints_2d, torch.stack([score for _, _, score in solved]))
-
-
-def _pad(window: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(14, h, w) -> (14, height, width), -inf below and right."""
-    return F.pad(
-        window, (0, width - window.shape[-1], 0, height - window.shape[-2]), value=-torch.inf
-    )

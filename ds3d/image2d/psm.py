@@ -54,6 +54,18 @@ def _tree_levels() -> tuple[tuple[int, ...], ...]:
 
 LEVELS = _tree_levels()
 
+# What one more PSM call costs, in the units of its maps' cost (h * w * max(h, w) cells, the
+# max-convolution's candidates; ds3d.util.groups.padded_groups): a call's fixed ops took about
+# 5 ms on one thread of the 2-core machine, a 64 x 64 map about 18 ms more (docs/tuning.md).
+PSM_CALL_COST = 40_000
+
+
+def no_joint_beyond(maps: Tensor, height: int, width: int) -> Tensor:
+    """Unaries (..., h, w) padded to (..., height, width) below and right with -inf, cells
+    where no joint can go: a PSM on the padded maps answers as on the maps alone."""
+    pad = (0, width - maps.shape[-1], 0, height - maps.shape[-2])
+    return torch.nn.functional.pad(maps, pad, value=-torch.inf)
+
 
 @dataclass(frozen=True)
 class PairwiseMixtures:

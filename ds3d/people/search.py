@@ -37,8 +37,8 @@ from ds3d.image2d.jointnet import (
     padded_logits_each,
 )
 from ds3d.image2d.params import EstimatorParams
-from ds3d.image2d.psm import PairwiseMixtures, RootScores
-from ds3d.util.groups import group_rows
+from ds3d.image2d.psm import PSM_CALL_COST, PairwiseMixtures, RootScores, no_joint_beyond
+from ds3d.util.groups import padded_groups
 from ds3d.util.threads import map_on_threads, split_rows
 
 # The people a level of person extent E finds: about 0.7 E to 1.3 E, the zoom the joint network
@@ -215,7 +215,7 @@ def _propose(
         rows, cols = grid.shape[-2:]
         grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
     unaries = [g * model.unary_weight for g in grids]
-    found = _level_people(unaries, mixtures, STRIDE * pool, params)
+    found = level_people(unaries, mixtures, STRIDE * pool, params)
     poses: list[list[np.ndarray]] = [[] for _ in images]
     scores: list[list[np.ndarray]] = [[] for _ in images]
     views: list[list[ScaledLogits]] = [[] for _ in images]
@@ -255,15 +255,20 @@ def level_inputs(
     return levels, labs, beyond
 
 
-def _level_people(
+def level_people(
     unaries: list[torch.Tensor], mixtures: PairwiseMixtures, stride: int, params: SearchParams
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The people of each level: unaries (1, 14, h_i, w_i) the PSM's, stride px of the level per
     cell -> per level, poses (K, 14, 2) px of the level and root scores (K,), the best local
-    maxima of the root scores (local_peaks). The levels of one grid shape share one PSM."""
+    maxima of the root scores (local_peaks). Levels of near shapes share one PSM, padded with
+    -inf, where no root or joint can score (padded_groups): small maps cost a PSM its fixed
+    ops more than their cells."""
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for rows in group_rows(u.shape for u in unaries).values():
-        upward = RootScores(torch.cat([unaries[i] for i in rows]), mixtures, stride=float(stride))
+    for rows in padded_groups([u.shape[-2:] for u in unaries], PSM_CALL_COST):
+        height = max(unaries[i].shape[-2] for i in rows)
+        width = max(unaries[i].shape[-1] for i in rows)
+        group = [no_joint_beyond(unaries[i], height, width) for i in rows]
+        upward = RootScores(torch.cat(group), mixtures, stride=float(stride))
         radius, most = params.peak_radius, params.peaks_per_level
         peaks = [local_peaks(root, radius, most) for root in upward.root]
         # The levels' peaks padded to one count with each level's first, then cut back.

@@ -4,7 +4,7 @@ import torch
 
 from ds3d.boxes import person_boxes, suppress
 from ds3d.image2d.psm import RootScores, infer
-from ds3d.people.search import SearchParams, level_extents, local_peaks
+from ds3d.people.search import SearchParams, level_extents, level_people, local_peaks
 from ds3d.skeleton import NUM_JOINTS
 from tests.image2d.test_psm import STANDING, peaked_unaries, planted_problem
 
@@ -60,3 +60,22 @@ def test_suppression_keeps_the_better_of_overlapping_people():
     poses = np.stack([pose, pose + 3, pose + 500])
     kept = suppress(person_boxes(poses), np.array([0.2, 0.9, 0.5]))
     assert kept.tolist() == [1, 2]
+
+
+def test_a_levels_people_do_not_depend_on_the_levels_searched_with_it():
+    """Levels of other shapes share a PSM padded with -inf (padded_groups): each level answers
+    the poses and root scores it answers alone."""
+    mixtures = planted_problem(np.random.default_rng(3))
+    rng = np.random.default_rng(4)
+    levels = []
+    for height, width, shift in ((40, 50, 3.0), (28, 36, 1.0), (30, 34, 6.0)):
+        peaks = [(j, *(STANDING[j] + shift), 0.0) for j in range(NUM_JOINTS)]
+        unaries = peaked_unaries(height, width, peaks) + rng.normal(0, 0.3, (height, width))
+        levels.append(torch.tensor(unaries, dtype=torch.float32)[None])
+    params = SearchParams()
+    together = level_people(levels, mixtures, 8, params)
+    for level, (poses, scores) in zip(levels, together, strict=True):
+        ((alone_poses, alone_scores),) = level_people([level], mixtures, 8, params)
+        np.testing.assert_array_equal(poses, alone_poses)
+        np.testing.assert_array_equal(scores, alone_scores)
+        assert len(scores) > 0
