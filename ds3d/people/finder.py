@@ -104,7 +104,10 @@ class PeopleFinder:
         searched = [i for i, item in enumerate(inputs) if item.bbox is None]
         if searched:
             self._require_score()
-        proposals = propose(self.estimator, [inputs[i].image for i in searched], self.params)
+        best_only = [inputs[i].people == "best" for i in searched]
+        proposals = propose(
+            self.estimator, [inputs[i].image for i in searched], self.params, best_only
+        )
         out = [
             Candidate(i, item.bbox, True, False)
             for i, item in enumerate(inputs)

@@ -9,6 +9,12 @@ per-map softmax: the softmax shares one unit of probability among everybody in t
 logits score each person on its own, comparably across images and levels. The proposals of all
 levels then go through non-maximum suppression (ds3d.boxes.suppress) on their pose's boxes.
 
+An image asked for its best person alone is searched from its finer levels first: where their
+best proposal frames the image (frames_image), the coarsest level, which seeks the largest
+people, is left out. In a photo framed around one person the finer levels' proposal is the best
+one nearly always (on 95 % of LSP train's held-out images), and the coarsest level costs about
+a quarter of the search's time (docs/tuning.md, speed).
+
 The proposals only say where and how large people are: each is then estimated in its box by
 the full 2D stage (ds3d.people.finder), and the person score (ds3d.people.score) says how likely
 each pose is a person.
@@ -17,6 +23,7 @@ each pose is a person.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +34,7 @@ from torch import nn
 from ds3d.boxes import person_boxes, suppress
 from ds3d.errors import DataFormatError
 from ds3d.image2d.buckets import bucket
-from ds3d.image2d.crops import resize_image
+from ds3d.image2d.crops import image_share, resize_image
 from ds3d.image2d.estimator import PoseEstimator2D
 from ds3d.image2d.features import lab_channels
 from ds3d.image2d.jointnet import (
@@ -173,19 +180,32 @@ def local_peaks(scores: torch.Tensor, radius: int, count: int) -> torch.Tensor:
 
 
 def propose(
-    estimator: PoseEstimator2D, images: list[np.ndarray], params: SearchParams
+    estimator: PoseEstimator2D,
+    images: list[np.ndarray],
+    params: SearchParams,
+    best_only: Sequence[bool] | None = None,
 ) -> list[Proposals]:
     """The people of each of B images (H_i, W_i, 3) uint8 RGB, checked (ds3d.inputs): the search
     of the module docstring, the images split over torch.get_num_threads() threads as in
-    PoseEstimator2D.estimate, on the estimator's device. Raises DataFormatError for a model
-    without a joint network."""
+    PoseEstimator2D.estimate, on the estimator's device. best_only: B flags, the images asked
+    for their best person alone, whose coarsest level is searched only where the others found
+    nobody framing the image (default: none). Raises DataFormatError for a model without a
+    joint network."""
     jointnet = estimator.network
     if jointnet is None:
         raise DataFormatError("the search for people needs the joint network")
+    best = list(best_only) if best_only is not None else [False] * len(images)
 
     def run(rows: torch.Tensor) -> list[Proposals]:
-        part = [images[i] for i in rows.tolist()]
-        return _propose(jointnet, estimator.mixtures, part, estimator.params, params)
+        part = rows.tolist()
+        return _propose(
+            jointnet,
+            estimator.mixtures,
+            [images[i] for i in part],
+            [best[i] for i in part],
+            estimator.params,
+            params,
+        )
 
     parts = map_on_threads(run, split_rows(len(images), estimator.device)) if images else []
     return [found for part in parts for found in part]
@@ -195,15 +215,76 @@ def _propose(
     net: nn.Module,
     mixtures: PairwiseMixtures,
     images: list[np.ndarray],
+    best_only: list[bool],
     model: EstimatorParams,
     params: SearchParams,
 ) -> list[Proposals]:
-    """propose() on the calling thread. The levels of all images go through the network together
-    (jointnet.padded_logits_each) and their PSMs in groups of one grid shape, so that neither
-    runs one small level at a time. model: the 2D model's parameters (canonical_extent, px of a
-    person at the working scale; unary_weight, the PSM's weight on its unaries)."""
+    """propose() on the calling thread, in up to two rounds: every level of each image, but the
+    coarsest of an image asked for its best person; then that coarsest level where the others
+    found nobody framing the image (frames_image). model: the 2D model's parameters
+    (canonical_extent, px of a person at the working scale; unary_weight, the PSM's weight on
+    its unaries)."""
+    extents = [level_extents(image.shape[0], params) for image in images]
+    first = [
+        e[:-1] if best and len(e) > 1 else e for e, best in zip(extents, best_only, strict=True)
+    ]
+    found = _levels_people(net, mixtures, images, first, model, params)
+    proposals = [_suppressed(*image, params) for image in found]
+    later = [
+        i
+        for i, image in enumerate(images)
+        if len(first[i]) < len(extents[i]) and not frames_image(proposals[i], image, model, params)
+    ]
+    if later:
+        coarsest = [extents[i][-1:] for i in later]
+        more = _levels_people(net, mixtures, [images[i] for i in later], coarsest, model, params)
+        for i, (more_poses, more_scores, more_views) in zip(later, more, strict=True):
+            poses, scores, views = found[i]
+            proposals[i] = _suppressed(
+                poses + more_poses, scores + more_scores, views + more_views, params
+            )
+    return proposals
+
+
+def frames_image(
+    proposals: Proposals, image: np.ndarray, model: EstimatorParams, params: SearchParams
+) -> bool:
+    """Whether the best proposal is a person the image is framed around: scoring proposal_floor,
+    with a crop (ds3d.image2d.crops.crop_region of its joints' box) that holds at least
+    whole_image_cover of the image. Such a photo's best person is theirs; the pyramid's coarsest
+    level, which seeks people up to max_height of the image, would add its time and little else
+    (docs/tuning.md, speed)."""
+    if not len(proposals.scores) or proposals.scores[0] < params.proposal_floor:
+        return False
+    pose = proposals.poses[0]
+    box = np.concatenate([pose.min(0), pose.max(0)])
+    height, width = image.shape[:2]
+    return image_share(box, width, height, model) >= params.whole_image_cover
+
+
+_LevelPeople = tuple[list[np.ndarray], list[np.ndarray], list[ScaledLogits]]
+
+
+def _levels_people(
+    net: nn.Module,
+    mixtures: PairwiseMixtures,
+    images: list[np.ndarray],
+    extents: list[list[float]],
+    model: EstimatorParams,
+    params: SearchParams,
+) -> list[_LevelPeople]:
+    """The people of N images at the person extents given for each (level_extents, or some of
+    them), before suppression: per image, per level, the poses (K_l, 14, 2) px of the image,
+    their root scores (K_l,) and the network's maps (ScaledLogits). The levels of all images go
+    through the network together (jointnet.padded_logits_each) and their PSMs in groups of near
+    shapes (level_people), so that neither runs one small level at a time."""
     pool = max(params.psm_stride // STRIDE, 1)
-    levels, labs, beyond = level_inputs(images, model, params, mixtures.mean.device)
+    poses: list[list[np.ndarray]] = [[] for _ in images]
+    scores: list[list[np.ndarray]] = [[] for _ in images]
+    views: list[list[ScaledLogits]] = [[] for _ in images]
+    levels, labs, beyond = level_inputs(images, extents, model, params, mixtures.mean.device)
+    if not levels:
+        return list(zip(poses, scores, views, strict=True))
     logits = padded_logits_each(net, labs, margin=beyond, steps=SEARCH_BUCKET_STEPS)
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
@@ -216,9 +297,6 @@ def _propose(
         grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
     unaries = [g * model.unary_weight for g in grids]
     found = level_people(unaries, mixtures, STRIDE * pool, params)
-    poses: list[list[np.ndarray]] = [[] for _ in images]
-    scores: list[list[np.ndarray]] = [[] for _ in images]
-    views: list[list[ScaledLogits]] = [[] for _ in images]
     for (i, resized), lg, (pose, score) in zip(levels, logits, found, strict=True):
         height, width = images[i].shape[:2]
         scale = (resized.shape[1] / width, resized.shape[0] / height)
@@ -228,13 +306,18 @@ def _propose(
         shown = ((pose >= 0) & (pose < (width, height))).all(-1).mean(-1) >= 0.5
         poses[i].append(pose[shown])
         scores[i].append(score[shown])
-    return [_suppressed(*image, params) for image in zip(poses, scores, views, strict=True)]
+    return list(zip(poses, scores, views, strict=True))
 
 
 def level_inputs(
-    images: list[np.ndarray], model: EstimatorParams, params: SearchParams, device: torch.device
+    images: list[np.ndarray],
+    extents: Sequence[Sequence[float]],
+    model: EstimatorParams,
+    params: SearchParams,
+    device: torch.device,
 ) -> tuple[list[tuple[int, np.ndarray]], list[torch.Tensor], int]:
-    """The pyramid levels of N images (H_i, W_i, 3) uint8 RGB: per level, (the image's index,
+    """The pyramid levels of N images (H_i, W_i, 3) uint8 RGB at the person extents given for
+    each (px of the image; level_extents'): per level, (the image's index,
     the image resized to it, (h, w, 3)), its Lab / 100 channels (1, 3, h, w) on `device`, and
     the px of zeros the levels reach past the images' edges (beyond_edge, whole network
     cells), which the network's input carries round them (padded_logits_each's margin). A
@@ -242,8 +325,8 @@ def level_inputs(
     canonical_extent = model.canonical_extent
     pool = max(params.psm_stride // STRIDE, 1)
     levels = []
-    for i, image in enumerate(images):
-        for extent in level_extents(image.shape[0], params):
+    for i, (image, sought) in enumerate(zip(images, extents, strict=True)):
+        for extent in sought:
             resized = resize_image(image, canonical_extent / extent)
             if min(resized.shape[:2]) >= 2 * STRIDE * pool:
                 levels.append((i, resized))
@@ -264,7 +347,7 @@ def level_people(
     -inf, where no root or joint can score (padded_groups): small maps cost a PSM its fixed
     ops more than their cells."""
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for rows in padded_groups([u.shape[-2:] for u in unaries], PSM_CALL_COST):
+    for rows in padded_groups([(u.shape[-2], u.shape[-1]) for u in unaries], PSM_CALL_COST):
         height = max(unaries[i].shape[-2] for i in rows)
         width = max(unaries[i].shape[-1] for i in rows)
         group = [no_joint_beyond(unaries[i], height, width) for i in rows]

@@ -18,7 +18,7 @@ from ds3d.image2d.model_files import load_model, save_int8_jointnet
 from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.quantized import ENGINE, quantize_jointnet
 from ds3d.io.images import read_image
-from ds3d.people.search import SEARCH_BUCKET_STEPS, SearchParams, level_inputs
+from ds3d.people.search import SEARCH_BUCKET_STEPS, SearchParams, level_extents, level_inputs
 
 
 def quantize_model(model_dir: Path, images: int) -> dict:
@@ -34,7 +34,9 @@ def quantize_model(model_dir: Path, images: int) -> dict:
     ann = load_lsp(split="train").subset(range(images))
     pictures = [read_image(p) for p in ann.image_paths]
     cpu = torch.device("cpu")
-    _, levels, beyond = level_inputs(pictures, model.params, SearchParams(), cpu)
+    search = SearchParams()
+    extents = [level_extents(picture.shape[0], search) for picture in pictures]
+    _, levels, beyond = level_inputs(pictures, extents, model.params, search, cpu)
     crops = [
         lab_channels(torch.from_numpy(image)[None]) for image in _crops(pictures, ann, model.params)
     ]

@@ -148,7 +148,7 @@ def test_weak_proposals_are_posed_only_apart_from_the_people_the_others_answered
 
 def _candidates(monkeypatch, found: Proposals, image: np.ndarray, people: str = "all"):
     """PeopleFinder.find of one image without a box whose search finds `found`."""
-    monkeypatch.setattr("ds3d.people.finder.propose", lambda estimator, images, params: [found])
+    monkeypatch.setattr("ds3d.people.finder.propose", lambda *args: [found])
     estimator = SimpleNamespace(params=EstimatorParams())
     finder = PeopleFinder(estimator, SearchParams(), SCORE)  # type: ignore[arg-type]
     return finder.find([ImageInput(image, people=people)])

@@ -3,8 +3,20 @@ import pytest
 import torch
 
 from ds3d.boxes import person_boxes, suppress
+from ds3d.data.lsp import load_lsp
+from ds3d.image2d.estimator import PoseEstimator2D
+from ds3d.image2d.params import EstimatorParams
 from ds3d.image2d.psm import RootScores, infer
-from ds3d.people.search import SearchParams, level_extents, level_people, local_peaks
+from ds3d.io.images import read_image
+from ds3d.people.search import (
+    Proposals,
+    SearchParams,
+    frames_image,
+    level_extents,
+    level_people,
+    local_peaks,
+    propose,
+)
 from ds3d.skeleton import NUM_JOINTS
 from tests.image2d.test_psm import STANDING, peaked_unaries, planted_problem
 
@@ -79,3 +91,37 @@ def test_a_levels_people_do_not_depend_on_the_levels_searched_with_it():
         np.testing.assert_array_equal(poses, alone_poses)
         np.testing.assert_array_equal(scores, alone_scores)
         assert len(scores) > 0
+
+
+def test_a_proposal_frames_the_image_when_sure_and_its_crop_holds_the_image():
+    params, model = SearchParams(), EstimatorParams()
+    image = np.zeros((200, 120, 3), np.uint8)
+    ys, xs = np.linspace(15.0, 185.0, NUM_JOINTS), np.linspace(25.0, 95.0, NUM_JOINTS)
+    filling = np.stack([xs, ys], 1)[None].astype(np.float32)
+
+    def proposals(poses: np.ndarray, score: float) -> Proposals:
+        return Proposals(poses, np.array([score], np.float32), [])
+
+    sure = params.proposal_floor + 1
+    assert frames_image(proposals(filling, sure), image, model, params)
+    assert not frames_image(proposals(filling, params.proposal_floor - 1), image, model, params)
+    assert not frames_image(proposals(0.3 * filling + 40, sure), image, model, params)
+    nobody = Proposals(filling[:0], np.zeros(0, np.float32), [])
+    assert not frames_image(nobody, image, model, params)
+
+
+def test_the_best_person_of_a_framed_photo_is_found_without_the_coarsest_level(data_dir):
+    """An LSP photo is a tight crop around its person: asked for its best person alone, the
+    search leaves its coarsest level out and proposes that person as a search of every level
+    does; asked for everyone, and in an image that frames nobody, every level is searched."""
+    estimator, params = PoseEstimator2D.load(), SearchParams()
+    photo = read_image(load_lsp(split="test").image_paths[0])
+    blank = np.full_like(photo, 128)
+    levels = len(level_extents(photo.shape[0], params))
+    best, every, nobody = propose(
+        estimator, [photo, photo, blank], params, best_only=[True, False, True]
+    )
+    assert levels >= 2 and len(every.levels) == len(nobody.levels) == levels
+    assert len(best.levels) == levels - 1
+    np.testing.assert_allclose(best.poses[0], every.poses[0])
+    assert best.scores[0] == every.scores[0] >= params.proposal_floor
