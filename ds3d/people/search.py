@@ -97,6 +97,8 @@ class SearchParams:
         through the 2D stage as one more crop (it finds people the image's edge cuts) unless
         the proposal's crop (crops.crop_region) holds at least this fraction of it: in a photo
         that is a tight crop around its person (LSP's) both are that person, estimated twice.
+        Such a proposal scoring proposal_floor frames the image (frames_image): an image asked
+        for its best person is then not searched at its coarsest level.
     proposal_floor: proposals whose root score is below it do not (the best one always does),
         unless weak:
     weak_floor, weak_people, weak_overlap: the best weak_people of the proposals scoring
