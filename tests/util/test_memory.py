@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -40,7 +41,10 @@ def test_bench_memory_reports_the_resident_memory_along_the_images(model_dir, tm
     report = json.loads(out.read_text())
     assert [row["images"] for row in report["rss_mb"]] == [3, 6]
     assert report["allocator"] == loaded_allocator() and report["malloc_trim"] is True
-    assert 100 < report["rss_mb"][-1]["rss_mb"] <= resident_mb() * 1.5
+    # The bench runs in this process: what it reports lies within this process's peak resident
+    # size (Linux reports ru_maxrss in KB); its size now is lower once the model is released.
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    assert 100 < report["rss_mb"][-1]["rss_mb"] <= peak_mb * 1.01
     assert report["s_per_image"] > 0
     if report["allocator"] == "glibc":  # its heap: bytes in use and free bytes kept
         assert 0 < report["rss_mb"][-1]["in_use_mb"] < report["rss_mb"][-1]["rss_mb"]
