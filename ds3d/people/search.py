@@ -296,7 +296,7 @@ def _levels_people(
         grid = F.max_pool2d(grid, pool, ceil_mode=True)
         # Cells past the level's reach are -inf: no root or joint can score there.
         rows, cols = grid.shape[-2:]
-        grids.append(F.pad(grid, (0, bucket(cols) - cols, 0, bucket(rows) - rows), value=-math.inf))
+        grids.append(no_joint_beyond(grid, bucket(rows), bucket(cols)))
     unaries = [g * model.unary_weight for g in grids]
     found = level_people(unaries, mixtures, STRIDE * pool, params)
     for (i, resized), lg, (pose, score) in zip(levels, logits, found, strict=True):
