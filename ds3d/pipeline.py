@@ -150,7 +150,8 @@ class Pipeline:
             return PipelineResult.empty(iterations or self.config.iterations, {"total": 0.0})
         t_start = time.perf_counter()
         finder = self.finder
-        candidates = finder.find(inputs)
+        search_steps: dict[str, float] = {}
+        candidates = finder.find(inputs, search_steps)
         search_ms = 1000 * (time.perf_counter() - t_start)
         images = [item.image for item in inputs]
         candidates, estimate, answer = finder.pose_and_answer(
@@ -175,7 +176,12 @@ class Pipeline:
         result.focal_assumed = torch.tensor(
             [item.intrinsics is None and item.focal_px is None for item in people]
         )
-        result.timings_ms = {"search": round(search_ms, 3), **result.timings_ms}
+        result.timings_ms = {
+            "search": round(search_ms, 3),
+            # of which the joint network's passes over the levels (CPU ms summed over threads)
+            "search_jointnet": round(1000 * search_steps.get("jointnet", 0.0), 3),
+            **result.timings_ms,
+        }
         result.timings_ms["total"] = round(1000 * (time.perf_counter() - t_start), 3)
         return result
 

@@ -92,7 +92,9 @@ class PeopleFinder:
                 "with `ds3d eval people --split train --start 700 --fit` (models/MODEL_CARD.md)"
             )
 
-    def find(self, inputs: Sequence[ImageInput]) -> list[Candidate]:
+    def find(
+        self, inputs: Sequence[ImageInput], timings: dict[str, float] | None = None
+    ) -> list[Candidate]:
         """The crops of B checked images: each given box, whose scale the 2D stage chooses; for
         an image without one, its search's proposals, whose scale the search has found (an image
         asked for its best person sends its best proposal alone), and, where it proposes at most
@@ -100,13 +102,13 @@ class PeopleFinder:
         unless the proposal's crop already holds most of the image (whole_image_cover).
         (Estimating the other proposals too and answering the best by the 2D stage's score gave
         79.76 against 79.93 % PCK held out, ds3d eval lsp-pipeline --searched, at twice the 2D
-        stage's time on every image with a second proposal.)"""
+        stage's time on every image with a second proposal.) timings: as propose's."""
         searched = [i for i, item in enumerate(inputs) if item.bbox is None]
         if searched:
             self._require_score()
         best_only = [inputs[i].people == "best" for i in searched]
         proposals = propose(
-            self.estimator, [inputs[i].image for i in searched], self.params, best_only
+            self.estimator, [inputs[i].image for i in searched], self.params, best_only, timings
         )
         out = [
             Candidate(i, item.bbox, True, False)

@@ -23,6 +23,7 @@ each pose is a person.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -186,19 +187,21 @@ def propose(
     images: list[np.ndarray],
     params: SearchParams,
     best_only: Sequence[bool] | None = None,
+    timings: dict[str, float] | None = None,
 ) -> list[Proposals]:
     """The people of each of B images (H_i, W_i, 3) uint8 RGB, checked (ds3d.inputs): the search
     of the module docstring, the images split over torch.get_num_threads() threads as in
     PoseEstimator2D.estimate, on the estimator's device. best_only: B flags, the images asked
     for their best person alone, whose coarsest level is searched only where the others found
-    nobody framing the image (default: none). Raises DataFormatError for a model without a
-    joint network."""
+    nobody framing the image (default: none). timings: where given, timings["jointnet"] grows
+    by the seconds of the joint network's passes, summed over the threads. Raises
+    DataFormatError for a model without a joint network."""
     jointnet = estimator.network
     if jointnet is None:
         raise DataFormatError("the search for people needs the joint network")
     best = list(best_only) if best_only is not None else [False] * len(images)
 
-    def run(rows: torch.Tensor) -> list[Proposals]:
+    def run(rows: torch.Tensor) -> tuple[list[Proposals], float]:
         part = rows.tolist()
         return _propose(
             jointnet,
@@ -210,7 +213,9 @@ def propose(
         )
 
     parts = map_on_threads(run, split_rows(len(images), estimator.device)) if images else []
-    return [found for part in parts for found in part]
+    if timings is not None:
+        timings["jointnet"] = timings.get("jointnet", 0.0) + sum(s for _, s in parts)
+    return [found for part, _ in parts for found in part]
 
 
 def _propose(
@@ -220,17 +225,17 @@ def _propose(
     best_only: list[bool],
     model: EstimatorParams,
     params: SearchParams,
-) -> list[Proposals]:
+) -> tuple[list[Proposals], float]:
     """propose() on the calling thread, in up to two rounds: every level of each image, but the
     coarsest of an image asked for its best person; then that coarsest level where the others
     found nobody framing the image (frames_image). model: the 2D model's parameters
     (canonical_extent, px of a person at the working scale; unary_weight, the PSM's weight on
-    its unaries)."""
+    its unaries). Returns the proposals and the seconds of the joint network's passes."""
     extents = [level_extents(image.shape[0], params) for image in images]
     first = [
         e[:-1] if best and len(e) > 1 else e for e, best in zip(extents, best_only, strict=True)
     ]
-    found = _levels_people(net, mixtures, images, first, model, params)
+    found, network_s = _levels_people(net, mixtures, images, first, model, params)
     proposals = [_suppressed(*image, params) for image in found]
     later = [
         i
@@ -239,13 +244,16 @@ def _propose(
     ]
     if later:
         coarsest = [extents[i][-1:] for i in later]
-        more = _levels_people(net, mixtures, [images[i] for i in later], coarsest, model, params)
+        more, more_s = _levels_people(
+            net, mixtures, [images[i] for i in later], coarsest, model, params
+        )
+        network_s += more_s
         for i, (more_poses, more_scores, more_views) in zip(later, more, strict=True):
             poses, scores, views = found[i]
             proposals[i] = _suppressed(
                 poses + more_poses, scores + more_scores, views + more_views, params
             )
-    return proposals
+    return proposals, network_s
 
 
 def frames_image(
@@ -274,20 +282,23 @@ def _levels_people(
     extents: list[list[float]],
     model: EstimatorParams,
     params: SearchParams,
-) -> list[_LevelPeople]:
+) -> tuple[list[_LevelPeople], float]:
     """The people of N images at the person extents given for each (level_extents, or some of
     them), before suppression: per image, per level, the poses (K_l, 14, 2) px of the image,
-    their root scores (K_l,) and the network's maps (ScaledLogits). The levels of all images go
-    through the network together (jointnet.padded_logits_each) and their PSMs in groups of near
-    shapes (level_people), so that neither runs one small level at a time."""
+    their root scores (K_l,) and the network's maps (ScaledLogits); and the seconds the network
+    took. The levels of all images go through the network together (jointnet.padded_logits_each)
+    and their PSMs in groups of near shapes (level_people), so that neither runs one small level
+    at a time."""
     pool = max(params.psm_stride // STRIDE, 1)
     poses: list[list[np.ndarray]] = [[] for _ in images]
     scores: list[list[np.ndarray]] = [[] for _ in images]
     views: list[list[ScaledLogits]] = [[] for _ in images]
     levels, labs, beyond = level_inputs(images, extents, model, params, mixtures.mean.device)
     if not levels:
-        return list(zip(poses, scores, views, strict=True))
+        return list(zip(poses, scores, views, strict=True)), 0.0
+    started = time.perf_counter()
     logits = padded_logits_each(net, labs, margin=beyond, steps=SEARCH_BUCKET_STEPS)
+    network_s = time.perf_counter() - started
     grids = []
     for lg, (_, resized) in zip(logits, levels, strict=True):
         grid = logits_to_grid(
@@ -308,7 +319,7 @@ def _levels_people(
         shown = ((pose >= 0) & (pose < (width, height))).all(-1).mean(-1) >= 0.5
         poses[i].append(pose[shown])
         scores[i].append(score[shown])
-    return list(zip(poses, scores, views, strict=True))
+    return list(zip(poses, scores, views, strict=True)), network_s
 
 
 def level_inputs(

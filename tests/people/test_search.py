@@ -125,3 +125,15 @@ def test_the_best_person_of_a_framed_photo_is_found_without_the_coarsest_level(d
     assert len(best.levels) == levels - 1
     np.testing.assert_allclose(best.poses[0], every.poses[0])
     assert best.scores[0] == every.scores[0] >= params.proposal_floor
+
+
+def test_the_search_reports_its_networks_time(data_dir):
+    """timings["jointnet"] grows by the joint network's seconds over the levels, added to what
+    the dict holds, and only where a level was searched."""
+    estimator, params = PoseEstimator2D.load(), SearchParams()
+    photo = read_image(load_lsp(split="test").image_paths[0])
+    held, fresh, none = {"jointnet": 1.0}, {}, {}
+    propose(estimator, [photo], params, best_only=[True], timings=held)
+    propose(estimator, [photo, photo], params, timings=fresh)
+    propose(estimator, [], params, timings=none)
+    assert 1.0 < held["jointnet"] and 0.0 < fresh["jointnet"] and none.get("jointnet", 0.0) == 0
